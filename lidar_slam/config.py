@@ -1,0 +1,134 @@
+"""One pydantic model per stage, gathered in SlamConfig; YAML overlay load and dump."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from lidar_slam.errors import ConfigError, InputError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class DataConfig(_Section):
+    min_range_m: float = 0.0
+    max_range_m: float = 100.0
+    # Deskew with per-point times (constant velocity) when the scans carry them. Done once, here.
+    deskew: bool = True
+    # kiss-icp's 0.205 deg vertical correction for KITTI HDL-64E scans (KITTI layout only).
+    kitti_vertical_correction: bool = False
+
+
+class OdometryConfig(_Section):
+    voxel_size_m: float | None = None  # default: max_range_m / 100, as kiss-icp
+    max_points_per_voxel: int = 20
+    initial_threshold_m: float = 2.0
+    min_motion_m: float = 0.1
+    max_num_iterations: int = 500
+    convergence_criterion: float = 1e-4
+    max_num_threads: int = 0
+
+
+class KeyframeConfig(_Section):
+    distance_m: float = 1.0
+    rotation_deg: float = 15.0
+    cloud_voxel_m: float = 0.5
+
+
+class ScanContextConfig(_Section):
+    rings: int = 20
+    sectors: int = 60
+    max_radius_m: float = 80.0
+    sensor_height_m: float = 2.0
+    candidates: int = 10
+    threshold: float = 0.3
+    exclude_recent: int = 30
+    local_search_sectors: int = 2
+
+
+class VerifyConfig(_Section):
+    method: Literal["point_to_plane", "gicp"] = "gicp"
+    voxel_m: float = 0.3
+    submap_radius: int = 2
+    max_correspondence_m: float = 1.0
+    min_fitness: float = 0.6
+    max_rmse_m: float = 0.3
+    max_yaw_disagreement_deg: float = 20.0
+    try_yaw_offsets: bool = True
+
+
+class BackendConfig(_Section):
+    odom_rot_sigma_deg: float = 0.1
+    odom_trans_sigma_m: float = 0.05
+    prior_rot_sigma_deg: float = 1e-3
+    prior_trans_sigma_m: float = 1e-3
+    huber_k: float = 1.345
+    max_iterations: int = 100
+
+
+class LoopConfig(_Section):
+    enabled: bool = True
+    scan_context: ScanContextConfig = ScanContextConfig()
+    verify: VerifyConfig = VerifyConfig()
+
+
+class MapConfig(_Section):
+    voxel_size_m: float = 0.2
+    max_range_m: float = 60.0
+
+
+class SlamConfig(_Section):
+    data: DataConfig = DataConfig()
+    odometry: OdometryConfig = OdometryConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    loop: LoopConfig = LoopConfig()
+    backend: BackendConfig = BackendConfig()
+    map: MapConfig = MapConfig()
+
+    def voxel_size_m(self) -> float:
+        """Effective odometry voxel size in metres."""
+        if self.odometry.voxel_size_m is not None:
+            return self.odometry.voxel_size_m
+        return self.data.max_range_m / 100.0
+
+
+def _merge(base: dict, overlay: dict) -> dict:
+    out = dict(base)
+    for key, value in overlay.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def load_config(path: str | Path | None = None, overrides: dict | None = None) -> SlamConfig:
+    """Defaults, overlaid by a YAML file, overlaid by a dict of overrides."""
+    data: dict = {}
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise InputError(p, "config file does not exist")
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise InputError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from exc
+        if not isinstance(data, dict):
+            raise InputError(p, "config must be a mapping of sections")
+    data = _merge(data, overrides or {})
+    try:
+        return SlamConfig(**data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(f"{path or 'config'}: {where}: {err['msg']}") from exc
+
+
+def dump_config(config: SlamConfig, path: str | Path) -> None:
+    """Write the effective config as YAML."""
+    Path(path).write_text(yaml.safe_dump(config.model_dump(), sort_keys=False))

@@ -1,0 +1,90 @@
+"""Trajectory files: KITTI (12 numbers per line), TUM (stamp tx ty tz qx qy qz qw), KITTI calib."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lidar_slam.errors import InputError
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    """(K, 4, 4) poses from a KITTI pose file (row-major 3x4 per line)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "pose file does not exist")
+    try:
+        data = np.loadtxt(p, ndmin=2)
+    except ValueError as exc:
+        raise InputError(p, f"not a KITTI pose file ({exc})") from exc
+    if data.size == 0:
+        raise InputError(p, "pose file is empty")
+    if data.shape[1] != 12:
+        raise InputError(p, f"expected 12 numbers per line, found {data.shape[1]}")
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :4] = data.reshape(-1, 3, 4)
+    return poses
+
+
+def write_kitti_poses(path: str | Path, poses: np.ndarray) -> None:
+    """Write (K, 4, 4) poses in KITTI format."""
+    rows = np.asarray(poses)[:, :3, :4].reshape(-1, 12)
+    np.savetxt(path, rows, fmt="%.9e")
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (K,), poses (K, 4, 4)) from a TUM file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "pose file does not exist")
+    try:
+        data = np.loadtxt(p, ndmin=2, comments="#")
+    except ValueError as exc:
+        raise InputError(p, f"not a TUM pose file ({exc})") from exc
+    if data.size == 0 or data.shape[1] != 8:
+        raise InputError(p, "expected 8 numbers per line (stamp tx ty tz qx qy qz qw)")
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(data[:, 4:8]).as_matrix()
+    poses[:, :3, 3] = data[:, 1:4]
+    return data[:, 0], poses
+
+
+def write_tum(path: str | Path, stamps_s: np.ndarray, poses: np.ndarray) -> None:
+    """Write poses with stamps in TUM format."""
+    poses = np.asarray(poses)
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    data = np.c_[np.asarray(stamps_s, float), poses[:, :3, 3], q]
+    np.savetxt(path, data, fmt="%.9f")
+
+
+def read_kitti_calib_tr(path: str | Path) -> np.ndarray:
+    """Tr (velodyne -> cam0) as 4x4 from a KITTI calib.txt."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "calib file does not exist")
+    for line in p.read_text().splitlines():
+        key, _, values = line.partition(":")
+        if key.strip() == "Tr":
+            nums = np.array(values.split(), dtype=float)
+            if nums.size != 12:
+                raise InputError(p, "Tr must have 12 numbers")
+            T = np.eye(4)
+            T[:3, :4] = nums.reshape(3, 4)
+            return T
+    raise InputError(p, "no 'Tr:' line (velodyne -> cam0 calibration)")
+
+
+def camera_to_lidar_poses(poses_cam: np.ndarray, Tr: np.ndarray) -> np.ndarray:
+    """KITTI cam0 ground truth to lidar frame: T_world_lidar(i) = inv(Tr) @ P_i @ Tr."""
+    return np.linalg.inv(Tr) @ poses_cam @ Tr
+
+
+def read_times(path: str | Path) -> np.ndarray:
+    """One stamp (s) per line."""
+    p = Path(path)
+    try:
+        return np.atleast_1d(np.loadtxt(p, ndmin=1))
+    except (ValueError, OSError) as exc:
+        raise InputError(p, f"unreadable times file ({exc})") from exc
