@@ -1,0 +1,128 @@
+"""The `lidar-slam` command: maps library errors to one-line messages and exit codes."""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from lidar_slam.errors import LidarSlamError
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
+                  help="Lidar SLAM: odometry, loop closure, pose graph, map and metrics.")
+console = Console(stderr=True)
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+def _fail(message: str, code: int = EXIT_BAD_INPUT) -> typer.Exit:
+    typer.echo(f"lidar-slam: error: {message}", err=True)
+    return typer.Exit(code)
+
+
+def reports_errors(fn):
+    """Turn typed library errors (and Ctrl-C) into one line on stderr and an exit code."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except LidarSlamError as exc:
+            raise _fail(str(exc)) from None
+        except KeyboardInterrupt:
+            raise _fail("interrupted", EXIT_INTERRUPTED) from None
+
+    return wrapper
+
+
+@app.callback()
+def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logging.")) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+
+
+def _summary_table(summary: dict) -> Table:
+    table = Table(title="lidar-slam run", show_header=True)
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    units = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m": "m",
+             "rpe_trans_m_mean": "m", "rpe_rot_deg_mean": "deg", "end_drift_pct": "%",
+             "ate_rmse_m": "m", "odometry_ate_rmse_m": "m", "odometry_ms_per_frame": "ms",
+             "loops_ms_per_frame": "ms"}
+    for key, value in summary.items():
+        text = f"{value:.4g}" if isinstance(value, float) else str(value)
+        table.add_row(key, f"{text} {units.get(key, '')}".strip())
+    return table
+
+
+@app.command()
+@reports_errors
+def run(
+    data: Path = typer.Argument(..., help="Folder of scans, KITTI sequence, or rosbag/mcap."),
+    out: Path = typer.Option(..., "--out", "-o", help="Run folder to write."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config overlay."),
+    start: int = typer.Option(0, "--start", min=0, help="First scan (0-based)."),
+    n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1, help="Number of scans."),
+    topic: Optional[str] = typer.Option(None, "--topic", help="PointCloud2 topic of a bag."),
+    no_loops: bool = typer.Option(False, "--no-loops", help="Odometry only."),
+    no_deskew: bool = typer.Option(False, "--no-deskew", help="Do not deskew."),
+    viz: bool = typer.Option(False, "--viz", help="Open the rerun viewer."),
+    rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record a rerun .rrd file."),
+) -> None:
+    """Run SLAM on DATA and write poses, map, config and summary into --out."""
+    from lidar_slam import pipeline
+    from lidar_slam.config import load_config
+    from lidar_slam.io.sources import open_source
+    from lidar_slam.outputs import write_run
+
+    overrides: dict = {}
+    if no_loops:
+        overrides["loop"] = {"enabled": False}
+    if no_deskew:
+        overrides["data"] = {"deskew": False}
+    cfg = load_config(config, overrides)
+    source = open_source(data, topic=topic,
+                         kitti_vertical_correction=cfg.data.kitti_vertical_correction)
+    if start >= len(source):
+        raise _fail(f"{data}: --start {start} is past the last scan ({len(source)} scans)")
+    total = len(source) - start if n_scans is None else min(n_scans, len(source) - start)
+    visualizer = None
+    if viz or rrd is not None:
+        from lidar_slam.viz import RerunViz
+
+        visualizer = RerunViz(spawn=viz, rrd_path=rrd)
+    t0 = time.perf_counter()
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[fps]:.1f} frames/s"), TimeElapsedColumn())
+    with Progress(*columns, console=console, transient=False, disable=not console.is_terminal
+                  and not sys.stderr.isatty()) as bar:
+        task = bar.add_task(source.name, total=total, fps=0.0)
+
+        def tick(_scan) -> None:
+            done = bar.tasks[0].completed + 1
+            bar.update(task, advance=1, fps=done / max(time.perf_counter() - t0, 1e-9))
+
+        result = pipeline.run(source.scans(start, total), cfg, on_scan=tick, viz=visualizer)
+    summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
+                        extra={"input": str(data), "start": start})
+    if visualizer is not None:
+        visualizer.finish(result)
+    Console().print(_summary_table(summary))
+    typer.echo(f"wrote {out}")
+    if result.error:
+        raise _fail(f"{result.error} (stopped there; frames so far written to {out})")
+    if result.interrupted:
+        raise _fail(f"interrupted; the {summary['frames']} frames so far written to {out}",
+                    EXIT_INTERRUPTED)
+
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,32 @@
+"""Motion compensation under a constant-velocity model.
+
+Convention: a scan's pose refers to the instant of its stamp (`Scan.stamp_s`), and per-point
+times are seconds relative to that stamp. A point captured at time t is moved into the sensor
+frame at the stamp with the pose T_stamp_t = interpolate(I, T_prev_curr, t / period_s), where
+T_prev_curr is the last frame-to-frame motion (over period_s seconds). Rotation is interpolated on
+SO(3) about the fixed axis of the motion, translation linearly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarray,
+           period_s: float) -> np.ndarray:
+    """Points (N,3) captured at point_times_s, expressed in the sensor frame at the scan stamp."""
+    if period_s <= 0:
+        return points
+    s = (point_times_s / period_s)[:, None]
+    rotvec = Rotation.from_matrix(T_prev_curr[:3, :3]).as_rotvec()
+    theta = float(np.linalg.norm(rotvec))
+    out = points
+    if theta > 1e-12:
+        k = rotvec / theta
+        ang = s * theta
+        c, sn = np.cos(ang), np.sin(ang)
+        kxp = np.cross(k, points)
+        kdp = points @ k
+        out = points * c + kxp * sn + np.outer(kdp, k) * (1.0 - c)
+    return out + s * T_prev_curr[:3, 3]

@@ -1,0 +1,84 @@
+"""The run folder: poses, map, config, loops, graph and summary."""
+
+from __future__ import annotations
+
+import json
+import resource
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam.config import SlamConfig, dump_config
+from lidar_slam.geometry import inverse
+from lidar_slam.io.trajectory import write_kitti_poses, write_tum
+from lidar_slam.mapping import build_map, write_ply
+from lidar_slam.pipeline import RunResult
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def path_length_m(poses: np.ndarray) -> float:
+    """Length of the polyline through the poses' positions."""
+    if len(poses) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
+def ground_truth_metrics(est: np.ndarray, gt_world: np.ndarray) -> dict:
+    """Per-frame RPE, ATE and end drift of est against gt (re-expressed in the first frame)."""
+    from lidar_slam import metrics
+
+    gt = inverse(gt_world[0]) @ gt_world
+    out: dict = {}
+    if len(est) >= 2:
+        rpe = metrics.rpe(est, gt)
+        out["rpe_trans_m_mean"] = rpe.trans_m_mean
+        out["rpe_rot_deg_mean"] = rpe.rot_deg_mean
+        gt_len = path_length_m(gt)
+        if gt_len > 0:
+            out["end_drift_pct"] = float(
+                100.0 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / gt_len)
+    out["ate_rmse_m"] = metrics.ate(est, gt).rmse_m
+    return out
+
+
+def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: np.ndarray | None,
+              wall_s: float, extra: dict | None = None, loop_writer=None) -> dict:
+    """Write every output file; return the summary (also written as summary.json)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dump_config(cfg, out_dir / "config.yaml")
+    n = len(result.indices)
+    summary: dict = {"frames": n, "keyframes": len(result.keyframes)}
+    if n:
+        poses = result.final_poses()
+        odom = np.stack(result.odom_poses)
+        stamps = np.asarray(result.stamps_s)
+        write_kitti_poses(out_dir / "poses_kitti.txt", poses)
+        write_tum(out_dir / "poses_tum.txt", stamps, poses)
+        write_kitti_poses(out_dir / "odometry_kitti.txt", odom)
+        pts, inten = build_map(result.keyframes, result.kf_poses, cfg.map.voxel_size_m)
+        write_ply(out_dir / "map.ply", pts, inten)
+        summary["map_points"] = int(len(pts))
+        summary["path_length_m"] = path_length_m(poses)
+        if ground_truth is not None:
+            gt = ground_truth[np.asarray(result.indices)]
+            summary.update(ground_truth_metrics(poses, gt))
+            if cfg.loop.enabled:
+                summary["odometry_" + "ate_rmse_m"] = ground_truth_metrics(odom, gt)["ate_rmse_m"]
+    if loop_writer is not None:
+        summary.update(loop_writer(out_dir, result))
+    summary["wall_s"] = wall_s
+    summary["fps"] = n / wall_s if wall_s > 0 else 0.0
+    summary["odometry_ms_per_frame"] = 1e3 * result.seconds["odometry"] / max(n, 1)
+    summary["loops_ms_per_frame"] = 1e3 * result.seconds["loops"] / max(n, 1)
+    summary["peak_rss_mb"] = peak_rss_mb()
+    summary["skipped_empty_scans"] = result.skipped_empty
+    summary["interrupted"] = result.interrupted
+    if result.error:
+        summary["stopped_by_error"] = result.error
+    summary.update(extra or {})
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary

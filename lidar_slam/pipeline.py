@@ -1,0 +1,138 @@
+"""The SLAM pipeline in flow order:
+reader -> crop -> deskew -> odometry -> keyframe? -> scan-context query -> ICP verify -> pose graph
+-> map / metrics.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lidar_slam.config import SlamConfig
+from lidar_slam.errors import LidarSlamError
+from lidar_slam.frontend.crop import range_mask
+from lidar_slam.frontend.deskew import deskew
+from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.geometry import inverse
+from lidar_slam.keyframes import KeyframeSelector
+from lidar_slam.odometry import Odometry
+from lidar_slam.types import Keyframe, Scan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunResult:
+    """Everything a run computed, frame by frame (lists grow as scans are processed)."""
+
+    indices: list[int] = field(default_factory=list)
+    stamps_s: list[float] = field(default_factory=list)
+    odom_poses: list[np.ndarray] = field(default_factory=list)  # T_world_scan before loops
+    frame_kf: list[int] = field(default_factory=list)  # keyframe each frame hangs off
+    keyframes: list[Keyframe] = field(default_factory=list)
+    kf_poses: dict[int, np.ndarray] = field(default_factory=dict)  # final T_world_kf
+    loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
+    skipped_empty: int = 0
+    interrupted: bool = False
+    error: str | None = None  # a bad input that stopped the run early
+    seconds: dict[str, float] = field(default_factory=lambda: {"odometry": 0.0, "loops": 0.0})
+
+    def final_poses(self) -> np.ndarray:
+        """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""
+        out = np.empty((len(self.odom_poses), 4, 4))
+        kf_by_id = {kf.id: kf for kf in self.keyframes}
+        for i, (T_odom, kf_id) in enumerate(zip(self.odom_poses, self.frame_kf)):
+            kf = kf_by_id[kf_id]
+            out[i] = self.kf_poses[kf_id] @ inverse(kf.T_world_kf_odom) @ T_odom
+        return out
+
+
+class Pipeline:
+    """Calls the stages in flow order for one scan at a time."""
+
+    def __init__(self, cfg: SlamConfig, viz=None):
+        self.cfg = cfg
+        self.odometry = Odometry(cfg)
+        self.keyframes = KeyframeSelector(cfg.keyframes)
+        self.loop_closer = None
+        if cfg.loop.enabled:
+            from lidar_slam.loop.closer import LoopCloser
+
+            self.loop_closer = LoopCloser(cfg)
+        self.viz = viz
+        self.result = RunResult()
+        self._last_stamp: float | None = None
+        self._last_dt = 0.1
+
+    def process(self, scan: Scan) -> None:
+        """Run one scan through every stage."""
+        r, t0 = self.result, time.perf_counter()
+        keep = range_mask(scan.points, self.cfg.data.min_range_m, self.cfg.data.max_range_m)
+        points = scan.points[keep]
+        if self._last_stamp is not None and scan.stamp_s > self._last_stamp:
+            dt = scan.stamp_s - self._last_stamp
+        else:
+            dt = self._last_dt
+        if len(points) == 0:
+            log.warning("%s: empty scan after cropping, skipped (pose predicted)", scan.source)
+            r.skipped_empty += 1
+            T_world_scan = self.odometry.predict()
+            self._append(scan, T_world_scan)
+            return
+        if self.cfg.data.deskew and scan.point_times is not None:
+            points = deskew(points, scan.point_times[keep], self.odometry.last_delta, self._last_dt)
+        T_world_scan = self.odometry.step(points)
+        self._last_dt, self._last_stamp = dt, scan.stamp_s
+        r.seconds["odometry"] += time.perf_counter() - t0
+        is_kf = self.keyframes.is_keyframe(T_world_scan)
+        if is_kf:
+            self._add_keyframe(scan, points, keep, T_world_scan)
+        self._append(scan, T_world_scan)
+        if self.viz is not None:
+            self.viz.log_scan(self, scan, points, T_world_scan, is_kf)
+
+    def _append(self, scan: Scan, T_world_scan: np.ndarray) -> None:
+        r = self.result
+        if not r.keyframes:  # an empty first scan still needs a keyframe to hang off
+            self._add_keyframe(scan, np.zeros((0, 3)), np.zeros(len(scan.points), bool), T_world_scan)
+        r.indices.append(scan.index)
+        r.stamps_s.append(scan.stamp_s)
+        r.odom_poses.append(T_world_scan)
+        r.frame_kf.append(r.keyframes[-1].id)
+
+    def _add_keyframe(self, scan: Scan, points: np.ndarray, keep: np.ndarray,
+                      T_world_scan: np.ndarray) -> None:
+        r = self.result
+        near = np.linalg.norm(points, axis=1) <= self.cfg.map.max_range_m
+        inten = scan.intensity[keep][near] if scan.intensity is not None else None
+        pts, inten = voxel_downsample(points[near], self.cfg.keyframes.cloud_voxel_m, inten)
+        kf = Keyframe(len(r.keyframes), scan.index, T_world_scan, pts.astype(np.float32),
+                      None if inten is None else inten.astype(np.float32))
+        r.keyframes.append(kf)
+        r.kf_poses[kf.id] = T_world_scan
+        if self.loop_closer is not None and len(pts):
+            t0 = time.perf_counter()
+            r.loops.extend(self.loop_closer.add_keyframe(kf))
+            r.kf_poses.update(self.loop_closer.kf_poses())
+            r.seconds["loops"] += time.perf_counter() - t0
+
+
+def run(scans: Iterable[Scan], cfg: SlamConfig, on_scan: Callable[[Scan], None] | None = None,
+        viz=None) -> RunResult:
+    """Process scans in order; Ctrl-C stops early and keeps everything computed so far."""
+    pipe = Pipeline(cfg, viz)
+    try:
+        for scan in scans:
+            pipe.process(scan)
+            if on_scan is not None:
+                on_scan(scan)
+    except KeyboardInterrupt:
+        log.warning("interrupted: keeping the %d frames processed so far", len(pipe.result.indices))
+        pipe.result.interrupted = True
+    except LidarSlamError as exc:
+        pipe.result.error = str(exc)
+    return pipe.result

@@ -1,0 +1,123 @@
+"""Readers: folder of scans (.bin/.pcd/.ply/.npy), KITTI layout, and bad inputs."""
+
+import numpy as np
+import pytest
+
+from lidar_slam.errors import InputError
+from lidar_slam.io.pointcloud import read_cloud, times_to_relative_seconds
+from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
+from lidar_slam.mapping import write_ply
+from lidar_slam.o3d import o3d
+
+
+def _cloud(n=100, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-20, 20, (n, 3)), rng.uniform(0, 1, n).astype(np.float32)
+
+
+def test_bin_ply_pcd_npy_give_the_same_points(tmp_path):
+    pts, inten = _cloud()
+    np.c_[pts, inten].astype(np.float32).tofile(tmp_path / "a.bin")
+    write_ply(tmp_path / "b.ply", pts, inten)
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts.astype(np.float32)))
+    pcd.point.intensity = o3d.core.Tensor(inten.reshape(-1, 1))
+    o3d.t.io.write_point_cloud(str(tmp_path / "c.pcd"), pcd)
+    np.save(tmp_path / "d.npy", np.c_[pts, inten])
+    for name in ("a.bin", "b.ply", "c.pcd", "d.npy"):
+        cloud = read_cloud(tmp_path / name)
+        np.testing.assert_allclose(cloud.points, pts.astype(np.float32), atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(cloud.intensity, inten, atol=1e-6, err_msg=name)
+
+
+def test_time_field_is_picked_up_and_converted_to_seconds(tmp_path):
+    pts, _ = _cloud(50)
+    t_ns = np.linspace(1.6e18, 1.6e18 + 0.1e9, 50)
+    rec = np.zeros(50, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("t", "f8")])
+    rec["x"], rec["y"], rec["z"], rec["t"] = pts.T[0], pts.T[1], pts.T[2], t_ns
+    np.save(tmp_path / "s.npy", rec)
+    cloud = read_cloud(tmp_path / "s.npy")
+    assert cloud.times is not None
+    assert cloud.times.min() == 0.0 and abs(cloud.times.max() - 0.1) < 1e-6
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts.astype(np.float32)))
+    pcd.point.time = o3d.core.Tensor(np.linspace(0, 0.1, 50, dtype=np.float32).reshape(-1, 1))
+    o3d.t.io.write_point_cloud(str(tmp_path / "t.pcd"), pcd)
+    assert abs(read_cloud(tmp_path / "t.pcd").times.max() - 0.1) < 1e-6
+
+
+@pytest.mark.parametrize("raw,span", [(np.array([0, 50_000, 100_000]), 0.1),
+                                      (np.array([5.0, 5.05, 5.1]), 0.1),
+                                      (np.array([0, 1e8]), 0.1)])
+def test_time_units_are_inferred(raw, span):
+    assert abs(times_to_relative_seconds(raw).max() - span) < 1e-9
+
+
+def test_folder_is_sorted_naturally_and_nan_points_dropped(tmp_path):
+    for i in (10, 2, 1):
+        pts, inten = _cloud(20, seed=i)
+        pts[0] = np.nan
+        np.c_[pts, inten].astype(np.float32).tofile(tmp_path / f"scan{i}.bin")
+    src = open_source(tmp_path)
+    assert isinstance(src, FolderSource)
+    assert [f.name for f in src.files] == ["scan1.bin", "scan2.bin", "scan10.bin"]
+    scans = list(src.scans())
+    assert [s.index for s in scans] == [0, 1, 2]
+    assert all(len(s.points) == 19 for s in scans)
+    assert [s.stamp_s for s in scans] == pytest.approx([0.0, 0.1, 0.2])
+
+
+def test_kitti_layout_reads_lidar_frame_ground_truth(kitti16):
+    src = open_source(kitti16)
+    assert isinstance(src, KittiSource) and len(src) == 16
+    scan = next(src.scans(start=3, count=1))
+    assert scan.index == 3 and len(scan.points) > 100_000
+    # The car drives forward along the lidar's x axis ~0.86 m per frame.
+    step = np.linalg.inv(src.ground_truth[0]) @ src.ground_truth[1]
+    assert 0.8 < step[0, 3] < 0.9 and abs(step[1, 3]) < 0.1
+    assert src.ground_truth[0][:3, 3] == pytest.approx([0, 0, 0], abs=1e-6)
+
+
+def test_kitti_vertical_correction_matches_kiss_icp():
+    from kiss_icp.pybind import kiss_icp_pybind as kp
+
+    pts, _ = _cloud(500)
+    ref = np.asarray(kp._correct_kitti_scan(kp._Vector3dVector(pts)))
+    np.testing.assert_allclose(correct_kitti_scan(pts), ref, atol=1e-9)
+
+
+def test_folder_with_scans_subfolder_and_reference_poses(ouster_loop):
+    src = open_source(ouster_loop)
+    assert len(src) == 77 and src.ground_truth.shape == (77, 4, 4)
+    assert src.stamps[1] - src.stamps[0] == pytest.approx(0.5, abs=0.01)
+
+
+@pytest.mark.parametrize("make,problem", [
+    (lambda d: d / "missing", "does not exist"),
+    (lambda d: d, "no scans found"),
+])
+def test_bad_paths(tmp_path, make, problem):
+    with pytest.raises(InputError, match=problem):
+        open_source(make(tmp_path))
+
+
+def test_bin_with_wrong_size(tmp_path):
+    (tmp_path / "x.bin").write_bytes(b"\0" * 20)
+    with pytest.raises(InputError, match=r"x.bin: size 20 bytes is not a multiple of 16"):
+        next(open_source(tmp_path).scans())
+
+
+@pytest.mark.parametrize("name,content", [("bad.pcd", b"garbage\x00\x01"),
+                                          ("bad.ply", b"not a ply"),
+                                          ("trunc.pcd", b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n"
+                                           b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 10\n"
+                                           b"HEIGHT 1\nPOINTS 10\nDATA binary\n\x00\x00")])
+def test_unreadable_pcd_ply(tmp_path, name, content):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(InputError, match=name):
+        read_cloud(tmp_path / name)
+
+
+def test_empty_pcd_is_an_empty_cloud_not_an_error(tmp_path):
+    (tmp_path / "e.pcd").write_bytes(b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n"
+                                     b"TYPE F F F\nCOUNT 1 1 1\nWIDTH 0\nHEIGHT 1\n"
+                                     b"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 0\nDATA ascii\n")
+    assert len(read_cloud(tmp_path / "e.pcd").points) == 0

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# One-command setup for a fresh machine (Python >= 3.10 with venv; no root, no apt needed:
+# open3d's missing libusb-1.0.so.0 is supplied by the libusb-package wheel at import time).
+#   bash tools/dev.sh demo   install into .venv and run lidar-slam on sample_scans/ -> runs/sample
+#   bash tools/dev.sh test   install with the test extra and run the test suite
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${VENV:-.venv}
+PYTHON=${PYTHON:-python3}
+if [ ! -x "$VENV/bin/python" ]; then
+  "$PYTHON" -m venv "$VENV"
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+fi
+cmd=${1:-demo}
+shift || true
+case "$cmd" in
+  demo)
+    "$VENV/bin/python" -m pip install -q -e .
+    "$VENV/bin/lidar-slam" run sample_scans --out runs/sample "$@"
+    ;;
+  test)
+    "$VENV/bin/python" -m pip install -q -e ".[test]"
+    "$VENV/bin/python" -m pytest -q "$@"
+    ;;
+  *)
+    echo "usage: bash tools/dev.sh demo|test [args...]" >&2
+    exit 2
+    ;;
+esac
