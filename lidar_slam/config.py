@@ -49,6 +49,13 @@ class ScanContextConfig(_Section):
     threshold: float = 0.3
     exclude_recent: int = 30
     local_search_sectors: int = 2
+    # Level each cloud on its fitted ground plane before binning (hand-held / tilted sensors); the
+    # yaw guess is then about the ground normal. Bin heights use the fitted sensor height when found.
+    level_to_ground: bool = True
+    max_tilt_deg: float = 30.0
+    # The ring-key KD-tree is rebuilt once this many keyframes were added since the last build;
+    # the ones added in between are compared by brute force.
+    tree_rebuild_every: int = 20
 
 
 class VerifyConfig(_Section):
@@ -60,6 +67,18 @@ class VerifyConfig(_Section):
     max_rmse_m: float = 0.3
     max_yaw_disagreement_deg: float = 20.0
     try_yaw_offsets: bool = True
+    # Fitness = share of query points with a match point within inlier_m after ICP.
+    inlier_m: float = 0.3
+    # The best hypothesis must beat the best *different* converged pose by this much fitness.
+    min_margin: float = 0.1
+    max_translation_m: float = 10.0
+    max_iterations: int = 30
+    # Level both clouds on their ground planes to build the yaw hypotheses about gravity.
+    level_to_ground: bool = True
+    # The information matrix keeps the shape of the point-to-plane Hessian but is scaled down
+    # so that no direction is more certain than these (residuals of neighbouring points correlate).
+    info_min_trans_sigma_m: float = 0.02
+    info_min_rot_sigma_deg: float = 0.2
 
 
 class BackendConfig(_Section):
@@ -73,6 +92,8 @@ class BackendConfig(_Section):
 
 class LoopConfig(_Section):
     enabled: bool = True
+    # Candidates verified per keyframe query (best descriptor distance first).
+    max_verify: int = 3
     scan_context: ScanContextConfig = ScanContextConfig()
     verify: VerifyConfig = VerifyConfig()
 

@@ -1,9 +1,64 @@
-"""SE(3) helpers on 4x4 float64 arrays."""
+"""SE(3) helpers on 4x4 float64 arrays (NumPy only: scipy's import alone costs ~0.3 s)."""
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) as (qx, qy, qz, qw) with qw >= 0 from rotation matrices (..., 3, 3).
+
+    Uses the symmetric 4x4 (Bar-Itzhack) eigenvector, so slightly non-orthonormal input gives the
+    nearest rotation's quaternion.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    m = R.reshape(-1, 3, 3)
+    xx, xy, xz = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    yx, yy, yz = m[:, 1, 0], m[:, 1, 1], m[:, 1, 2]
+    zx, zy, zz = m[:, 2, 0], m[:, 2, 1], m[:, 2, 2]
+    K = np.stack([
+        np.stack([xx - yy - zz, yx + xy, zx + xz, zy - yz], -1),
+        np.stack([yx + xy, yy - xx - zz, zy + yz, xz - zx], -1),
+        np.stack([zx + xz, zy + yz, zz - xx - yy, yx - xy], -1),
+        np.stack([zy - yz, xz - zx, yx - xy, xx + yy + zz], -1),
+    ], -2) / 3.0
+    _, vecs = np.linalg.eigh(K)
+    q = vecs[:, :, -1]
+    q = q * np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from quaternions (..., 4) ordered (qx, qy, qz, qw)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, rad) of a rotation matrix (..., 3, 3)."""
+    q = quat_from_matrix(R)
+    v = q[..., :3]
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(n, q[..., 3:4])
+    scale = np.where(n > 1e-12, angle / np.maximum(n, 1e-300), 2.0)
+    return v * scale
+
+
+def matrix_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) from a rotation vector (rad), Rodrigues' formula."""
+    rv = np.asarray(rotvec, dtype=np.float64)
+    theta = float(np.linalg.norm(rv))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = rv / theta
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -37,10 +92,10 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(T: np.ndarray) -> np.ndarray:
-    """Rotation angle of a transform (or a stack) in degrees."""
-    R = T[..., :3, :3]
-    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    """Rotation angle of a transform (or a stack) in degrees (of the nearest rotation: exact
+    also for small angles, where arccos((trace - 1) / 2) loses precision)."""
+    q = quat_from_matrix(T[..., :3, :3])
+    return np.degrees(2.0 * np.arctan2(np.linalg.norm(q[..., :3], axis=-1), q[..., 3]))
 
 
 def yaw_rad(T: np.ndarray) -> float:
@@ -50,24 +105,23 @@ def yaw_rad(T: np.ndarray) -> float:
 
 def to_xyz_quat(T: np.ndarray) -> np.ndarray:
     """(x, y, z, qx, qy, qz, qw) of a pose."""
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()
-    return np.r_[T[:3, 3], q]
+    return np.r_[T[:3, 3], quat_from_matrix(T[:3, :3])]
 
 
 def from_xyz_quat(v: np.ndarray) -> np.ndarray:
     """4x4 pose from (x, y, z, qx, qy, qz, qw)."""
-    return make_pose(Rotation.from_quat(v[3:7]).as_matrix(), v[:3])
+    return make_pose(matrix_from_quat(v[3:7]), v[:3])
 
 
 def log_se3(T: np.ndarray) -> np.ndarray:
     """Twist (rho, phi) of a pose: translation part first, rotation vector second (decoupled)."""
-    return np.r_[T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()]
+    return np.r_[T[:3, 3], rotvec_from_matrix(T[:3, :3])]
 
 
 def interpolate(T_a: np.ndarray, T_b: np.ndarray, s: float) -> np.ndarray:
     """Pose at fraction s between T_a and T_b (slerp on rotation, lerp on translation)."""
-    dR = Rotation.from_matrix(T_a[:3, :3].T @ T_b[:3, :3]).as_rotvec()
-    R = T_a[:3, :3] @ Rotation.from_rotvec(s * dR).as_matrix()
+    dR = rotvec_from_matrix(T_a[:3, :3].T @ T_b[:3, :3])
+    R = T_a[:3, :3] @ matrix_from_rotvec(s * dR)
     return make_pose(R, (1 - s) * T_a[:3, 3] + s * T_b[:3, 3])
 
 

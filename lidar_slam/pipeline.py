@@ -39,6 +39,7 @@ class RunResult:
     skipped_empty: int = 0
     interrupted: bool = False
     error: str | None = None  # a bad input that stopped the run early
+    graph: object | None = None  # the keyframe PoseGraph when loops are on (for graph.g2o)
     seconds: dict[str, float] = field(default_factory=lambda: {"odometry": 0.0, "loops": 0.0})
 
     def final_poses(self) -> np.ndarray:
@@ -58,13 +59,14 @@ class Pipeline:
         self.cfg = cfg
         self.odometry = Odometry(cfg)
         self.keyframes = KeyframeSelector(cfg.keyframes)
+        self.result = RunResult()
         self.loop_closer = None
         if cfg.loop.enabled:
             from lidar_slam.loop.closer import LoopCloser
 
             self.loop_closer = LoopCloser(cfg)
+            self.result.graph = self.loop_closer.graph
         self.viz = viz
-        self.result = RunResult()
         self._last_stamp: float | None = None
         self._last_dt = 0.1
 

@@ -10,7 +10,8 @@ SO(3) about the fixed axis of the motion, translation linearly.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from lidar_slam.geometry import rotvec_from_matrix
 
 
 def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarray,
@@ -19,7 +20,7 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarra
     if period_s <= 0:
         return points
     s = (point_times_s / period_s)[:, None]
-    rotvec = Rotation.from_matrix(T_prev_curr[:3, :3]).as_rotvec()
+    rotvec = rotvec_from_matrix(T_prev_curr[:3, :3])
     theta = float(np.linalg.norm(rotvec))
     out = points
     if theta > 1e-12:

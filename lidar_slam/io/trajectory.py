@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from lidar_slam.errors import InputError
+from lidar_slam.geometry import matrix_from_quat, quat_from_matrix
 
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
@@ -46,7 +46,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if data.size == 0 or data.shape[1] != 8:
         raise InputError(p, "expected 8 numbers per line (stamp tx ty tz qx qy qz qw)")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(data[:, 4:8]).as_matrix()
+    poses[:, :3, :3] = matrix_from_quat(data[:, 4:8])
     poses[:, :3, 3] = data[:, 1:4]
     return data[:, 0], poses
 
@@ -54,7 +54,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def write_tum(path: str | Path, stamps_s: np.ndarray, poses: np.ndarray) -> None:
     """Write poses with stamps in TUM format."""
     poses = np.asarray(poses)
-    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    q = quat_from_matrix(poses[:, :3, :3]) if len(poses) else np.zeros((0, 4))
     data = np.c_[np.asarray(stamps_s, float), poses[:, :3, 3], q]
     np.savetxt(path, data, fmt="%.9f")
 

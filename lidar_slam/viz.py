@@ -1,0 +1,75 @@
+"""Rerun visualisation: the only module that imports rerun (imported only with --viz / --rrd).
+
+Logged: the current scan (world frame), the growing map (keyframe clouds), the odometry trajectory,
+keyframes, accepted loop edges, and at the end the optimised trajectory and map. Time is set per
+scan on the `frame` (input index) and `stamp` (seconds) timelines.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.geometry import transform_points
+
+SCAN_VOXEL_M = 0.3
+
+
+class RerunViz:
+    """Logs a run to a live viewer (spawn=True) and/or an .rrd recording."""
+
+    def __init__(self, spawn: bool = False, rrd_path: str | Path | None = None):
+        self.rec = rr.RecordingStream("lidar_slam")
+        if rrd_path is not None:
+            self.rec.save(str(rrd_path))
+        if spawn:
+            self.rec.spawn()
+        self._n_loops = 0
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    def log_scan(self, pipe, scan, points_scan: np.ndarray, T_world_scan: np.ndarray,
+                 is_keyframe: bool) -> None:
+        """Log one processed scan and whatever the pipeline added with it."""
+        rec, result = self.rec, pipe.result
+        rec.set_time("frame", sequence=scan.index)
+        rec.set_time("stamp", duration=float(scan.stamp_s))
+        pts, _ = voxel_downsample(points_scan, SCAN_VOXEL_M)
+        rec.log("world/scan", rr.Points3D(transform_points(T_world_scan, pts), radii=0.05,
+                                          colors=[255, 200, 0]))
+        rec.log("world/sensor", rr.Transform3D(translation=T_world_scan[:3, 3],
+                                               mat3x3=T_world_scan[:3, :3]))
+        odom = np.stack(result.odom_poses)[:, :3, 3]
+        rec.log("world/odometry", rr.LineStrips3D([odom], colors=[200, 80, 80], radii=0.05))
+        if is_keyframe:
+            kf = result.keyframes[-1]
+            rec.log(f"world/map/kf_{kf.id:06d}",
+                    rr.Points3D(transform_points(kf.T_world_kf_odom, kf.points), radii=0.04,
+                                colors=[150, 150, 150]))
+            kf_xyz = np.stack([k.T_world_kf_odom[:3, 3] for k in result.keyframes])
+            rec.log("world/keyframes", rr.Points3D(kf_xyz, radii=0.15, colors=[60, 120, 255]))
+        accepted = [row for row in result.loops if row.accepted]
+        if len(accepted) != self._n_loops:
+            self._n_loops = len(accepted)
+            self._log_loops(accepted, result.kf_poses)
+
+    def _log_loops(self, accepted, kf_poses) -> None:
+        strips = [np.stack([kf_poses[row.query_kf][:3, 3], kf_poses[row.match_kf][:3, 3]])
+                  for row in accepted]
+        self.rec.log("world/loops", rr.LineStrips3D(strips, colors=[0, 220, 0], radii=0.1))
+
+    def finish(self, result) -> None:
+        """Log the final (optimised) trajectory and map, then flush the recording."""
+        if result.odom_poses:
+            poses = result.final_poses()
+            self.rec.log("world/optimised", rr.LineStrips3D([poses[:, :3, 3]], colors=[0, 200, 255],
+                                                            radii=0.06), static=True)
+            cloud = np.concatenate([transform_points(result.kf_poses[kf.id], kf.points)
+                                    for kf in result.keyframes])
+            cloud, _ = voxel_downsample(cloud, SCAN_VOXEL_M)
+            self.rec.log("world/optimised_map", rr.Points3D(cloud, radii=0.04), static=True)
+            self._log_loops([row for row in result.loops if row.accepted], result.kf_poses)
+        self.rec.flush()
+        self.rec.disconnect()

@@ -1,0 +1,156 @@
+"""End-to-end `lidar-slam run` and the CLI's handling of bad input and interruption."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_slam.io.trajectory import read_kitti_poses, read_tum
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def lidar_slam(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "lidar_slam.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def assert_one_line_error(proc, *needles):
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_missing_path(tmp_path):
+    assert_one_line_error(lidar_slam("run", tmp_path / "nope", "--out", tmp_path / "o"),
+                          "nope", "does not exist")
+
+
+def test_folder_without_scans(tmp_path):
+    (tmp_path / "notes.txt").write_text("hi")
+    assert_one_line_error(lidar_slam("run", tmp_path, "--out", tmp_path / "o"), "no scans found")
+
+
+def test_bin_of_wrong_size_names_the_file(tmp_path):
+    np.zeros((10, 4), np.float32).tofile(tmp_path / "000000.bin")
+    (tmp_path / "000001.bin").write_bytes(b"\0" * 30)
+    proc = lidar_slam("run", tmp_path, "--out", tmp_path / "o", "--no-loops")
+    assert_one_line_error(proc, "000001.bin", "not a multiple of 16")
+    # What was computed before the bad file is kept.
+    assert len(read_kitti_poses(tmp_path / "o" / "poses_kitti.txt")) == 1
+
+
+def test_unreadable_pcd(tmp_path):
+    (tmp_path / "a.pcd").write_bytes(b"\x00garbage")
+    assert_one_line_error(lidar_slam("run", tmp_path, "--out", tmp_path / "o"), "a.pcd")
+
+
+def test_bad_config_is_one_line(tmp_path, kitti16):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("odometry:\n  voxel_size_m: [1, 2]\n")
+    assert_one_line_error(lidar_slam("run", kitti16, "--out", tmp_path / "o", "--config", cfg),
+                          "odometry.voxel_size_m")
+
+
+def test_empty_and_nan_scans_are_skipped_not_fatal(tmp_path, kitti16):
+    data = tmp_path / "scans"
+    data.mkdir()
+    for i, src in enumerate(sorted((kitti16 / "velodyne").glob("*.bin"))[:4]):
+        pts = np.fromfile(src, np.float32).reshape(-1, 4)
+        if i == 1:
+            pts[:100, 0] = np.nan
+        if i == 2:
+            pts = pts[:0]
+        pts.tofile(data / f"{i:06d}.bin")
+    proc = lidar_slam("run", data, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    assert "dropped 100 points with NaN/inf" in proc.stderr
+    assert "empty scan" in proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 4 and summary["skipped_empty_scans"] == 1
+
+
+def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16, monkeypatch):
+    from lidar_slam import pipeline
+    from lidar_slam.config import load_config
+    from lidar_slam.io.sources import open_source
+    from lidar_slam.outputs import write_run
+
+    src = open_source(kitti16)
+
+    def scans_then_ctrl_c():
+        for scan in src.scans(0, 5):
+            yield scan
+        raise KeyboardInterrupt
+
+    cfg = load_config(overrides={"loop": {"enabled": False}})
+    result = pipeline.run(scans_then_ctrl_c(), cfg)
+    assert result.interrupted and len(result.indices) == 5
+    write_run(tmp_path, result, cfg, src.ground_truth, 1.0)
+    assert len(read_kitti_poses(tmp_path / "poses_kitti.txt")) == 5
+    assert json.loads((tmp_path / "summary.json").read_text())["interrupted"] is True
+
+
+def test_sigint_writes_partial_outputs(tmp_path, kitti16):
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(kitti16),
+                             "--out", str(tmp_path / "o"), "--no-loops"],
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(2.5)  # past the imports; the run may or may not have finished
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert "Traceback" not in err
+    assert proc.returncode in (0, 130)
+    poses = read_kitti_poses(tmp_path / "o" / "poses_kitti.txt")
+    assert 1 <= len(poses) <= 16
+
+
+def test_run_on_kitti_writes_everything(tmp_path, kitti16):
+    out = tmp_path / "run"
+    proc = lidar_slam("run", kitti16, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.ply",
+                 "config.yaml", "summary.json"):
+        assert (out / name).is_file(), name
+    poses = read_kitti_poses(out / "poses_kitti.txt")
+    stamps, tum = read_tum(out / "poses_tum.txt")
+    assert len(poses) == len(tum) == 16
+    np.testing.assert_allclose(tum, poses, atol=1e-6)
+    np.testing.assert_allclose(stamps, np.loadtxt(kitti16 / "times.txt"), atol=1e-6)
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("frames", "keyframes", "wall_s", "fps", "peak_rss_mb", "path_length_m",
+                "rpe_trans_m_mean", "rpe_rot_deg_mean", "end_drift_pct"):
+        assert key in summary, key
+    assert summary["frames"] == 16
+    # Stock KISS-ICP scores 8.6 cm per frame here (much of it the truth's own error).
+    assert summary["rpe_trans_m_mean"] < 0.09
+    assert 12.0 < summary["path_length_m"] < 13.5
+
+    from lidar_slam.o3d import o3d
+
+    cloud = o3d.t.io.read_point_cloud(str(out / "map.ply"))
+    pts = cloud.point.positions.numpy()
+    assert len(pts) >= 20_000
+    assert "intensity" in cloud.point
+    # The map spans the whole drive: points around the first and the last sensor position.
+    for T in (poses[0], poses[-1]):
+        near = np.linalg.norm(pts[:, :2] - T[:2, 3], axis=1) < 5.0
+        assert near.sum() > 500
+
+
+def test_start_and_n_scans(tmp_path, kitti16):
+    proc = lidar_slam("run", kitti16, "--out", tmp_path / "o", "--start", 4, "--n-scans", 6,
+                      "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    stamps, _ = read_tum(tmp_path / "o" / "poses_tum.txt")
+    np.testing.assert_allclose(stamps, np.loadtxt(kitti16 / "times.txt")[4:10], atol=1e-6)
+    assert_one_line_error(lidar_slam("run", kitti16, "--out", tmp_path / "p", "--start", 99),
+                          "--start 99")

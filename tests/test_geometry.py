@@ -1,0 +1,37 @@
+"""SE(3) helpers against scipy's reference implementation."""
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lidar_slam import geometry as g
+
+
+def test_quaternion_and_rotvec_conversions_match_scipy():
+    R = Rotation.random(200, random_state=0)
+    mats = R.as_matrix()
+    q = g.quat_from_matrix(mats)
+    ref = R.as_quat()
+    ref = ref * np.where(ref[:, 3:4] < 0, -1, 1)
+    np.testing.assert_allclose(q, ref, atol=1e-12)
+    np.testing.assert_allclose(g.matrix_from_quat(q), mats, atol=1e-12)
+    np.testing.assert_allclose(g.rotvec_from_matrix(mats), R.as_rotvec(), atol=1e-10)
+    for rv in R.as_rotvec()[:20]:
+        np.testing.assert_allclose(g.matrix_from_rotvec(rv), Rotation.from_rotvec(rv).as_matrix(),
+                                   atol=1e-12)
+
+
+def test_small_rotation_angle_is_exact():
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0, 0, np.radians(0.01)]).as_matrix()
+    assert abs(g.rotation_angle_deg(T) - 0.01) < 1e-9
+
+
+def test_inverse_relative_and_interpolate():
+    rng = np.random.default_rng(0)
+    A = g.make_pose(Rotation.random(random_state=1).as_matrix(), rng.normal(size=3))
+    B = g.make_pose(Rotation.random(random_state=2).as_matrix(), rng.normal(size=3))
+    np.testing.assert_allclose(g.inverse(A) @ A, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(A @ g.relative(A, B), B, atol=1e-12)
+    np.testing.assert_allclose(g.interpolate(A, B, 0.0), A, atol=1e-12)
+    np.testing.assert_allclose(g.interpolate(A, B, 1.0), B, atol=1e-12)
+    np.testing.assert_allclose(g.from_xyz_quat(g.to_xyz_quat(A)), A, atol=1e-12)
