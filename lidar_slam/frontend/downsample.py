@@ -17,12 +17,13 @@ def voxel_downsample(points: np.ndarray, voxel_m: float, intensity: np.ndarray |
     cells -= cells.min(axis=0)
     dims = cells.max(axis=0) + 1
     keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    n = len(counts)
-    out = np.empty((n, 3))
-    for axis in range(3):
-        out[:, axis] = np.bincount(inverse, weights=points[:, axis], minlength=n) / counts
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    counts = np.diff(np.r_[starts, len(keys)])[:, None]
+    out = np.add.reduceat(points[order], starts, axis=0) / counts
     out_i = None
     if intensity is not None:
-        out_i = (np.bincount(inverse, weights=intensity, minlength=n) / counts).astype(np.float32)
+        out_i = (np.add.reduceat(np.asarray(intensity, np.float64)[order], starts)
+                 / counts[:, 0]).astype(np.float32)
     return out, out_i
