@@ -6,6 +6,7 @@ import functools
 import logging
 import sys
 import time
+from enum import Enum
 from pathlib import Path
 from typing import Optional
 
@@ -122,6 +123,57 @@ def run(
     if result.interrupted:
         raise _fail(f"interrupted; the {summary['frames']} frames so far written to {out}",
                     EXIT_INTERRUPTED)
+
+
+class Robust(str, Enum):
+    huber = "huber"
+    none = "none"
+
+
+class TrajFormat(str, Enum):
+    kitti = "kitti"
+    tum = "tum"
+
+
+@app.command()
+@reports_errors
+def optimize(
+    graph: Path = typer.Argument(..., help="Input g2o (2D SE2 or 3D SE3:QUAT)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Optimised g2o to write."),
+    robust: Robust = typer.Option(Robust.none, "--robust", help="Kernel on loop edges."),
+    huber_k: float = typer.Option(1.345, "--huber-k", help="Huber threshold (whitened)."),
+    max_iterations: int = typer.Option(100, "--max-iterations", min=1),
+) -> None:
+    """Optimise a pose graph with GTSAM Levenberg-Marquardt (prior on the first pose)."""
+    from lidar_slam.backend.g2o_optimize import optimize_g2o
+
+    rep = optimize_g2o(graph, out, robust=robust.value, huber_k=huber_k,
+                       max_iterations=max_iterations)
+    typer.echo(f"graph={graph} dims={rep.dims} vertices={rep.n_vertices} edges={rep.n_edges} "
+               f"loop_edges={rep.n_loop_edges} robust={rep.robust}")
+    typer.echo(f"initial_error={rep.initial_error:.6g}")
+    typer.echo(f"final_error={rep.final_error:.6g}")
+    typer.echo(f"iterations={rep.iterations} seconds={rep.seconds:.3f}")
+    typer.echo(f"wrote {out}")
+
+
+@app.command("eval")
+@reports_errors
+def eval_cmd(
+    est: Path = typer.Argument(..., help="Estimated trajectory."),
+    gt: Path = typer.Argument(..., help="Ground-truth trajectory."),
+    fmt: TrajFormat = typer.Option(TrajFormat.kitti, "--format", help="File format of both."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="KITTI calib: GT cam0 -> lidar."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="metrics.json and plots here."),
+    loops: Optional[Path] = typer.Option(None, "--loops", help="loops.csv of the run."),
+) -> None:
+    """KITTI drift (t_err %, r_err deg/100 m), ATE and RPE of EST against GT."""
+    from lidar_slam.evaluate import format_table, run_eval
+
+    metrics = run_eval(est, gt, fmt=fmt.value, calib_path=calib, out_dir=out, loops_csv=loops)
+    typer.echo(format_table(metrics))
+    if out is not None:
+        typer.echo(f"wrote {out}")
 
 
 if __name__ == "__main__":
