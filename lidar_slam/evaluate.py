@@ -1,0 +1,345 @@
+"""Evaluate an estimated trajectory against ground truth: metrics.json, a table, two PNG plots.
+
+Frames: the estimate is assumed to be in the lidar frame already (T_world_lidar, as the pipeline
+writes it). KITTI ground truth is in the left camera (cam0) frame; with calib_path it is moved to
+the lidar frame as T_world_lidar(i) = inv(Tr) @ P_i @ Tr. Without calib both are compared as given.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam import metrics
+from lidar_slam.errors import InputError
+from lidar_slam.geometry import from_xyz_quat, inverse
+from lidar_slam.io.trajectory import (
+    camera_to_lidar_poses,
+    read_kitti_calib_tr,
+    read_kitti_poses,
+    read_tum,
+)
+
+log = logging.getLogger(__name__)
+
+# Optional loops.csv columns holding the verified T_match_query (translation m, quaternion xyzw).
+LOOP_POSE_COLUMNS = ("tx_m", "ty_m", "tz_m", "qx", "qy", "qz", "qw")
+
+
+@dataclass(frozen=True)
+class Associated:
+    """Estimate and GT poses paired frame by frame; est_rows[k] is the estimate row of pair k."""
+
+    est: np.ndarray
+    gt: np.ndarray
+    est_rows: np.ndarray
+
+
+@dataclass(frozen=True)
+class AcceptedLoops:
+    """Accepted loops from loops.csv as frame indices, with T_match_query when the file has it."""
+
+    pairs: np.ndarray
+    T_match_query: np.ndarray | None
+    n_rows: int
+
+
+def _check_finite(path: str | Path, poses: np.ndarray) -> None:
+    if not np.all(np.isfinite(poses)):
+        raise InputError(path, "pose file contains NaN or infinite values")
+
+
+def load_associated(est_path: str | Path, gt_path: str | Path, fmt: str = "kitti",
+                    max_time_diff_s: float = 0.01) -> Associated:
+    """Read both trajectories; KITTI: same line count; TUM: nearest stamps within max_diff."""
+    if fmt == "kitti":
+        est, gt = read_kitti_poses(est_path), read_kitti_poses(gt_path)
+        if len(est) != len(gt):
+            raise InputError(est_path, f"{len(est)} poses but the ground truth {gt_path} has "
+                                       f"{len(gt)} (KITTI files must match line for line)")
+        rows = np.arange(len(est))
+    elif fmt == "tum":
+        (t_est, est), (t_gt, gt) = read_tum(est_path), read_tum(gt_path)
+        rows, gt_rows = _associate(t_est, t_gt, max_time_diff_s)
+        if len(rows) < 2:
+            raise InputError(est_path, f"only {len(rows)} stamps match {gt_path} within "
+                                       f"{max_time_diff_s} s")
+        log.info("associated %d of %d estimated poses with ground truth", len(rows), len(est))
+        est, gt = est[rows], gt[gt_rows]
+    else:
+        raise InputError(est_path, f"unknown trajectory format {fmt!r} (kitti or tum)")
+    _check_finite(est_path, est)
+    _check_finite(gt_path, gt)
+    if len(est) < 2:
+        raise InputError(est_path, f"{len(est)} pose(s); the metrics need at least 2")
+    return Associated(est, gt, rows)
+
+
+def _associate(t_est: np.ndarray, t_gt: np.ndarray, max_diff_s: float) -> tuple[np.ndarray,
+                                                                                   np.ndarray]:
+    """Rows (est, gt) of nearest stamps within max_diff_s, each GT stamp used at most once."""
+    order = np.argsort(t_gt)
+    ts = t_gt[order]
+    pos = np.clip(np.searchsorted(ts, t_est), 1, max(len(ts) - 1, 1))
+    left, right = ts[pos - 1], ts[np.minimum(pos, len(ts) - 1)]
+    nearest = np.where(np.abs(t_est - left) <= np.abs(t_est - right), pos - 1, pos)
+    nearest = np.minimum(nearest, len(ts) - 1)
+    ok = np.abs(ts[nearest] - t_est) <= max_diff_s
+    est_rows = np.flatnonzero(ok)
+    gt_rows = order[nearest[ok]]
+    _, first = np.unique(gt_rows, return_index=True)
+    keep = np.sort(first)
+    return est_rows[keep], gt_rows[keep]
+
+
+def _truthy(value: str) -> bool:
+    return value.strip().lower() in ("1", "true", "yes", "y")
+
+
+def read_loops_csv(path: str | Path) -> AcceptedLoops:
+    """Accepted rows of loops.csv (columns query_frame, match_frame, ..., accepted)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "loops file does not exist")
+    try:
+        with p.open(newline="") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            header = {h.strip() for h in reader.fieldnames or ()}
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(p, f"unreadable loops CSV ({exc})") from exc
+    need = {"query_frame", "match_frame", "accepted"}
+    if not need <= header:
+        raise InputError(p, f"missing columns {sorted(need - header)}")
+    has_pose = set(LOOP_POSE_COLUMNS) <= header
+    try:
+        acc = [r for r in rows if _truthy(r["accepted"])]
+        pairs = np.array([[int(r["query_frame"]), int(r["match_frame"])] for r in acc],
+                         dtype=np.int64).reshape(-1, 2)
+        T = None
+        if has_pose:
+            T = np.array([from_xyz_quat(np.array([float(r[c]) for c in LOOP_POSE_COLUMNS]))
+                          for r in acc]).reshape(-1, 4, 4)
+    except (TypeError, ValueError) as exc:
+        raise InputError(p, f"bad value in an accepted row ({exc})") from exc
+    return AcceptedLoops(pairs, T, len(rows))
+
+
+def _loop_metrics(loops_csv: str | Path, assoc: Associated) -> tuple[dict, np.ndarray,
+                                                                      np.ndarray]:
+    """Loop precision/recall entries; also the scored pairs (positions in assoc) and correctness."""
+    loops = read_loops_csv(loops_csv)
+    to_pos = {int(r): k for k, r in enumerate(assoc.est_rows)}
+    keep = np.array([int(q) in to_pos and int(m) in to_pos for q, m in loops.pairs], dtype=bool)
+    n_unmatched = int((~keep).sum())
+    if n_unmatched:
+        log.warning("%d accepted loops reference frames without ground truth; not scored",
+                    n_unmatched)
+    pairs = np.array([[to_pos[int(q)], to_pos[int(m)]] for q, m in loops.pairs[keep]],
+                     dtype=np.int64).reshape(-1, 2)
+    if loops.T_match_query is not None:
+        T = loops.T_match_query[keep]
+        source = "loops.csv T_match_query"
+    else:
+        # No measured relative pose in the file: judge the final trajectory between the frames.
+        T = inverse(assoc.est[pairs[:, 1]]) @ assoc.est[pairs[:, 0]]
+        source = "estimated trajectory"
+    s = metrics.loop_precision_recall(pairs, T, assoc.gt)
+    out = {
+        "loop_pose_source": source,
+        "loops_proposed": loops.n_rows,
+        "loops_accepted": s.n_accepted,
+        "loops_correct": s.n_correct,
+        "loops_unscored": n_unmatched,
+        "loop_precision": s.precision,
+        "loop_recall_events": s.recall_events,
+        "loop_recall_frames": s.recall_frames,
+        "revisit_events": s.n_revisit_events,
+        "revisit_events_found": s.n_revisit_events_found,
+        "revisit_frames": s.n_revisit_frames,
+        "revisit_frames_covered": s.n_revisit_frames_covered,
+    }
+    return out, pairs, s.correct
+
+
+def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "kitti",
+             calib_path: str | Path | None = None, out_dir: str | Path | None = None,
+             loops_csv: str | Path | None = None) -> dict:
+    """All metrics of one trajectory (t_err %, r_err deg/100 m, ATE m, RPE m/deg, loops)."""
+    assoc = load_associated(est_path, gt_path, fmt)
+    if calib_path is not None:
+        gt = camera_to_lidar_poses(assoc.gt, read_kitti_calib_tr(calib_path))
+        assoc = Associated(assoc.est, gt, assoc.est_rows)
+    est, gt = assoc.est, assoc.gt
+    drift = metrics.kitti_drift(est, gt)
+    a = metrics.ate(est, gt)
+    r = metrics.rpe(est, gt)
+    out: dict = {
+        "t_err_pct": drift.t_err_pct,
+        "r_err_deg_per_100m": drift.r_err_deg_per_100m,
+        "ate_rmse_m": a.rmse_m,
+        "rpe_trans_m_mean": r.trans_m_mean,
+        "rpe_rot_deg_mean": r.rot_deg_mean,
+        "note": drift.note,
+        "kitti_segments": drift.n_segments,
+        "ate_mean_m": a.mean_m,
+        "ate_median_m": a.median_m,
+        "ate_max_m": a.max_m,
+        "rpe_trans_m_max": r.trans_m_max,
+        "rpe_rot_deg_max": r.rot_deg_max,
+        "n_frames": len(est),
+        "path_length_m": drift.gt_path_length_m,
+        "est_path_length_m": float(metrics.path_distances_m(est)[-1]),
+        "gt_frame": "lidar (GT moved with calib Tr)" if calib_path else "as given",
+        "drift_by_length": [
+            {"length_m": b.length_m, "t_err_pct": b.t_err_pct,
+             "r_err_deg_per_100m": b.r_err_deg_per_100m, "segments": b.n_segments}
+            for b in drift.by_length
+        ],
+    }
+    mean_step_m = out["path_length_m"] / (len(gt) - 1)
+    if mean_step_m > 0 and r.trans_m_mean > 0.5 * mean_step_m:
+        # Per-frame errors as large as the motion itself: almost always a frame mix-up (camera vs
+        # lidar, a missing or extra calib), not a bad estimate.
+        out["warning"] = (f"per-frame RPE {r.trans_m_mean:.3f} m vs mean step {mean_step_m:.3f} m:"
+                          " estimate and ground truth are probably in different sensor frames")
+        log.warning(out["warning"])
+    pairs, correct = np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=bool)
+    if loops_csv is not None:
+        loop_out, pairs, correct = _loop_metrics(loops_csv, assoc)
+        out.update(loop_out)
+    if out_dir is not None:
+        d = Path(out_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "metrics.json").write_text(json.dumps(out, indent=2) + "\n")
+        plot_top_view(d / "trajectory_top.png", est, gt, pairs, correct)
+        plot_error_vs_distance(d / "error_vs_distance.png", metrics.error_vs_distance(est, gt))
+    return out
+
+
+# ----------------------------------------------------------------------------------- plots
+
+
+def _top_axes(gt: np.ndarray) -> tuple[int, int]:
+    """The two axes of largest GT spread: x-y for lidar frames, x-z for KITTI camera frames."""
+    keep = np.sort(np.argsort(np.ptp(gt[:, :3, 3], axis=0))[1:])
+    return int(keep[0]), int(keep[1])
+
+
+def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray,
+                  correct: np.ndarray) -> None:
+    """Top view of GT and estimate (started at the GT's first pose), accepted loops as edges."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    est_w = gt[0] @ inverse(est[0]) @ est
+    i, j = _top_axes(gt)
+    fig = Figure(figsize=(7, 7))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(gt[:, i, 3], gt[:, j, 3], "k-", lw=1.2, label="ground truth")
+    ax.plot(est_w[:, i, 3], est_w[:, j, 3], "b-", lw=1.0, label="estimate")
+    for ok, colour, name in ((True, "g", "correct loop"), (False, "r", "wrong loop")):
+        sel = pairs[correct == ok]
+        for n, (q, m) in enumerate(sel):
+            ax.plot(est_w[[q, m], i, 3], est_w[[q, m], j, 3], colour + "-", lw=0.8,
+                    label=f"{name} ({len(sel)})" if n == 0 else None)
+    ax.plot(gt[0, i, 3], gt[0, j, 3], "ko", label="start")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(f"{'xyz'[i]} [m]")
+    ax.set_ylabel(f"{'xyz'[j]} [m]")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("top view (estimate started at the ground truth's first pose)")
+    fig.savefig(path, dpi=120)
+
+
+def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance) -> None:
+    """Translation error (m) from frame 0 against GT distance travelled (m)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 4))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(series.distance_m, series.trans_err_m, "b-", lw=1.0)
+    ax.set_xlabel("distance travelled along the ground truth [m]")
+    ax.set_ylabel("translation error [m]")
+    ax.set_title("position error, both trajectories expressed in their first pose")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+# ----------------------------------------------------------------------------------- table
+
+_UNITS = (
+    ("_deg_per_100m", "deg/100 m"),
+    ("_pct", "%"),
+    ("_deg_mean", "deg"),
+    ("_deg_max", "deg"),
+    ("_m_mean", "m"),
+    ("_m_max", "m"),
+    ("_m", "m"),
+)
+_LABELS = {
+    "t_err_pct": "KITTI t_err",
+    "r_err_deg_per_100m": "KITTI r_err",
+    "ate_rmse_m": "ATE RMSE",
+    "ate_mean_m": "ATE mean",
+    "ate_median_m": "ATE median",
+    "ate_max_m": "ATE max",
+    "rpe_trans_m_mean": "RPE translation mean (per frame)",
+    "rpe_trans_m_max": "RPE translation max (per frame)",
+    "rpe_rot_deg_mean": "RPE rotation mean (per frame)",
+    "rpe_rot_deg_max": "RPE rotation max (per frame)",
+    "path_length_m": "GT path length",
+    "est_path_length_m": "estimated path length",
+    "n_frames": "frames",
+    "kitti_segments": "KITTI segments",
+}
+
+
+def _unit(key: str) -> str:
+    for suffix, unit in _UNITS:
+        if key.endswith(suffix):
+            return unit
+    return ""
+
+
+def format_table(m: dict) -> str:
+    """The metrics as aligned 'name  value unit' lines; every number carries its unit."""
+    lines = []
+    for key in _LABELS:
+        if key not in m:
+            continue
+        value, unit = m[key], _unit(key)
+        if value is None:
+            text = "n/a"
+        elif isinstance(value, int):
+            text = f"{value:d}"
+        else:
+            digits = 4 if unit in ("m", "deg") and abs(value) < 1 else 3
+            text = f"{value:.{digits}f} {unit}".rstrip()
+        lines.append(f"{_LABELS[key]:<34} {text}")
+    for key in ("note", "warning"):
+        if m.get(key):
+            lines.append(f"{key:<34} {m[key]}")
+    if "loops_accepted" in m:
+        counts = f"{m['loops_accepted']} / {m['loops_correct']} (of {m['loops_proposed']} proposed)"
+        lines.append(f"{'loops accepted / correct':<34} {counts}")
+        for key, label, num, den in (
+            ("loop_precision", "loop precision", "loops_correct", "loops_accepted"),
+            ("loop_recall_events", "loop recall (revisit events)", "revisit_events_found",
+             "revisit_events"),
+            ("loop_recall_frames", "loop recall (revisit frames)", "revisit_frames_covered",
+             "revisit_frames"),
+        ):
+            v = m[key]
+            text = "n/a" if v is None else f"{100 * v:.1f} %"
+            lines.append(f"{label:<34} {text} ({m[num]} / {m[den]})")
+    return "\n".join(lines)
