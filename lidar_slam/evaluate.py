@@ -28,7 +28,7 @@ from lidar_slam.io.trajectory import (
 log = logging.getLogger(__name__)
 
 # Optional loops.csv columns holding the verified T_match_query (translation m, quaternion xyzw).
-LOOP_POSE_COLUMNS = ("tx_m", "ty_m", "tz_m", "qx", "qy", "qz", "qw")
+LOOP_POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")  # as loops.csv writes them
 
 
 @dataclass(frozen=True)

@@ -114,7 +114,7 @@ def test_evaluate_loops_csv_precision_and_recall(tmp_path):
     assert m["loop_precision"] == 1.0  # both agree: the estimate IS the truth here
     assert (m["revisit_events"], m["revisit_events_found"]) == (1, 1)
     # With measured relative poses in the file, a wrong one is caught.
-    rows = ["query_frame,match_frame,accepted,tx_m,ty_m,tz_m,qx,qy,qz,qw"]
+    rows = ["query_frame,match_frame,accepted,x,y,z,qx,qy,qz,qw"]
     for q, mm, dx in ((255, 5, 0.0), (200, 20, 3.0)):
         v = to_xyz_quat(np.linalg.inv(gt[mm]) @ gt[q])
         v[0] += dx
