@@ -10,9 +10,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from lidar_slam.geometry import inverse
+from lidar_slam.geometry import inverse, rotation_angle_deg
 
 # The official KITTI odometry devkit (evaluate_odometry.cpp): segment lengths along the ground truth
 # and a segment starting every 10 frames (every second at 10 Hz).
@@ -233,7 +232,7 @@ def _relative_error(T_ref: np.ndarray, T_est: np.ndarray) -> np.ndarray:
 def _angle_deg(T: np.ndarray) -> np.ndarray:
     """Rotation angle (deg) of the nearest rotation: file rotations are only orthonormal to ~1e-7,
     which makes arccos((trace - 1) / 2) wrong by ~1% at the 0.05 deg of a frame-to-frame step."""
-    return np.degrees(Rotation.from_matrix(T[..., :3, :3]).magnitude())
+    return rotation_angle_deg(T)
 
 
 @dataclass(frozen=True)
