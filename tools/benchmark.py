@@ -1,0 +1,374 @@
+"""Side by side: lidar-slam, stock KISS-ICP and stock KISS-SLAM on the same scans, one table.
+
+Usage: python tools/benchmark.py SEQ [SEQ ...] --out DIR [--repeats N]
+       [--config-for SEQNAME=FILE ...] [--systems lidar-slam,kiss-icp,kiss-slam]
+       [--start N] [--n-scans N]
+
+Every system runs as its own process on the scans lidar_slam's readers produce (so all three see
+identical points; no KITTI vertical correction unless a lidar-slam config asks for it). Cost is
+whole-process: wall time and peak RSS from os.wait4's rusage; frames/s = frames / median wall time
+over the repeats (interleaved, so every system sees the same machine load), peak MB = max over the
+repeats. Accuracy comes from lidar_slam.evaluate.run_eval and lidar_slam.metrics on the outputs of
+the last repeat, against the sequence's ground truth (reference poses for the Ouster set).
+
+Writes DIR/benchmark.md and DIR/benchmark.json (the table), and per (sequence, system) the run
+outputs, logs and evaluation (metrics.json and plots) under DIR/<sequence>/<system>/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib.util
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam import evaluate, metrics
+from lidar_slam.errors import LidarSlamError
+from lidar_slam.geometry import from_xyz_quat, inverse
+from lidar_slam.io.sources import open_source
+from lidar_slam.io.trajectory import write_kitti_poses
+
+HERE = Path(__file__).resolve().parent
+SYSTEMS = ("lidar-slam", "kiss-icp", "kiss-slam")
+LABELS = {"lidar-slam": "lidar-slam", "kiss-icp": "KISS-ICP (stock)",
+          "kiss-slam": "KISS-SLAM (stock)"}
+# Which Python package each peer needs; peers live in the `bench` extra and are optional.
+PEER_PACKAGES = {"kiss-icp": "kiss_icp", "kiss-slam": "kiss_slam"}
+# loops.csv as the pipeline writes it (lidar_slam.loop.closer.loops_csv_rows): T_match_query.
+LOOPS_POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+MIN_DRIFT_PATH_M = metrics.KITTI_LENGTHS_M[0]
+HEADER = ("sequence", "system", "t_err %", "r_err deg/100 m", "ATE m", "loops accepted / correct",
+          "frames/s", "peak MB")
+
+
+@dataclass
+class Sequence:
+    """One input sequence as the benchmark uses it: frames start..start+n-1."""
+
+    path: Path
+    name: str
+    start: int
+    n: int
+    gt: np.ndarray | None  # (n, 4, 4) T_first_lidar, or None
+    config: Path | None
+
+
+@dataclass
+class Row:
+    """One (sequence, system) line of the table plus the raw numbers behind it."""
+
+    sequence: str
+    system: str
+    frames: int
+    wall_s: list[float] = field(default_factory=list)
+    peak_mb: list[float] = field(default_factory=list)
+    metrics: dict = field(default_factory=dict)
+    loops_accepted: int | None = None
+    loops_correct: int | None = None
+    error: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def fps(self) -> float | None:
+        return self.frames / statistics.median(self.wall_s) if self.wall_s else None
+
+
+# ------------------------------------------------------------------------------ running
+
+
+def timed(cmd: list[str], log_path: Path) -> tuple[float, float, int]:
+    """Wall seconds, peak RSS (MB) and exit code of one child process; its output goes to log."""
+    with log_path.open("w") as log:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)  # already reaped by wait4
+    return wall, usage.ru_maxrss / 1024.0, proc.returncode
+
+
+def command(system: str, seq: Sequence, out: Path) -> list[str]:
+    """The command line that runs one system on one sequence, writing into out."""
+    rng = ["--start", str(seq.start), "--n-scans", str(seq.n)]
+    if system == "lidar-slam":
+        cfg = ["--config", str(seq.config)] if seq.config else []
+        return [sys.executable, "-m", "lidar_slam.cli", "run", str(seq.path), "--out", str(out),
+                *rng, *cfg]
+    if system == "kiss-icp":
+        return [sys.executable, str(HERE / "stock_kiss_icp.py"), str(seq.path),
+                str(out / "poses_kitti.txt"), *rng]
+    if system == "kiss-slam":
+        return [sys.executable, str(HERE / "kiss_slam_peer.py"), str(seq.path),
+                str(out / "poses_kitti.txt"), "--closures", str(out / "closures.json"), *rng]
+    raise ValueError(f"unknown system {system!r}")
+
+
+def available(system: str) -> bool:
+    """Whether the package a peer needs is importable here; says so when it is not."""
+    pkg = PEER_PACKAGES.get(system)
+    if pkg is None or importlib.util.find_spec(pkg) is not None:
+        return True
+    print(f"skipping {LABELS[system]}: Python package '{pkg}' is not installed in "
+          f"{sys.executable} (peers are in the bench extra: pip install -e '.[bench]')")
+    return False
+
+
+# ---------------------------------------------------------------------------- evaluating
+
+
+def lidar_slam_loops(path: Path, start: int, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Accepted loops of a lidar-slam loops.csv as positions in the slice, with T_match_query."""
+    loops = evaluate.read_loops_csv(path)
+    T = loops.T_match_query
+    if T is None and len(loops.pairs):
+        # evaluate.read_loops_csv knows other column names; the pipeline writes x..qw.
+        import csv
+
+        with path.open(newline="") as fh:
+            rows = [r for r in csv.DictReader(fh)
+                    if r["accepted"].strip().lower() in ("1", "true", "yes", "y")]
+        if rows and set(LOOPS_POSE_COLUMNS) <= set(rows[0]):
+            T = np.array([from_xyz_quat(np.array([float(r[c]) for c in LOOPS_POSE_COLUMNS]))
+                          for r in rows]).reshape(-1, 4, 4)
+    return loops.pairs - start, T
+
+
+def kiss_slam_loops(path: Path, start: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """KISS-SLAM closures (from tools/kiss_slam_peer.py) as frame pairs with T_match_query."""
+    closures = json.loads(path.read_text())["closures"]
+    pairs = np.array([[c["query_frame"], c["match_frame"]] for c in closures],
+                     dtype=np.int64).reshape(-1, 2)
+    T = np.array([from_xyz_quat(np.array(c["T_match_query_xyz_quat"])) for c in closures])
+    return pairs - start, T.reshape(-1, 4, 4)
+
+
+def score_loops(row: Row, pairs: np.ndarray, T: np.ndarray | None, seq: Sequence) -> None:
+    """Fill loops accepted / correct (correct: within 1 m / 5 deg of the truth's relative pose)."""
+    row.loops_accepted = len(pairs)
+    inside = ((pairs >= 0) & (pairs < seq.n)).all(axis=1) if len(pairs) else np.zeros(0, bool)
+    if seq.gt is None or T is None or not inside.all():
+        row.notes.append("loop correctness unknown (no truth or no relative pose)")
+        return
+    s = metrics.loop_precision_recall(pairs, T, seq.gt)
+    row.loops_correct = s.n_correct
+    row.metrics["loop_score"] = {
+        "pairs": pairs.tolist(), "correct": s.correct.tolist(),
+        "trans_err_m": s.trans_err_m.tolist(), "rot_err_deg": s.rot_err_deg.tolist(),
+        "revisit_events": s.n_revisit_events, "revisit_events_found": s.n_revisit_events_found,
+    }
+
+
+def evaluate_row(row: Row, seq: Sequence, out: Path, gt_file: Path | None) -> None:
+    """Trajectory metrics (evaluate.run_eval) and loop counts of one finished run."""
+    poses = out / "poses_kitti.txt"
+    if gt_file is not None:
+        try:
+            row.metrics.update(evaluate.run_eval(poses, gt_file, out_dir=out / "eval"))
+        except LidarSlamError as exc:
+            row.error = f"evaluation failed: {exc}"
+            return
+        if row.metrics.get("warning"):
+            row.notes.append(row.metrics["warning"])
+    if row.system == "lidar-slam" and (out / "loops.csv").is_file():
+        score_loops(row, *lidar_slam_loops(out / "loops.csv", seq.start, seq.n), seq)
+    elif row.system == "kiss-slam" and (out / "closures.json").is_file():
+        score_loops(row, *kiss_slam_loops(out / "closures.json", seq.start), seq)
+
+
+# ------------------------------------------------------------------------------ the table
+
+
+def _num(value: float | None, digits: int) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def cells(row: Row) -> list[str]:
+    """The table cells of one row, every number in the unit of its column header."""
+    name = [row.sequence, LABELS[row.system]]
+    if row.error:
+        return name + [f"failed: {row.error}"] + [""] * 5
+    m = row.metrics
+    if not m:
+        t_err = r_err = ate = "n/a (no truth)"
+    elif m.get("t_err_pct") is None:
+        short = m.get("path_length_m", 0.0) < MIN_DRIFT_PATH_M
+        t_err = r_err = f"n/a (<{MIN_DRIFT_PATH_M:.0f} m)" if short else "n/a"
+        ate = _num(m.get("ate_rmse_m"), 3)
+    else:
+        t_err, r_err = _num(m["t_err_pct"], 2), _num(m["r_err_deg_per_100m"], 3)
+        ate = _num(m.get("ate_rmse_m"), 3)
+    if row.system == "kiss-icp":
+        loops = "- (odometry only)"
+    elif row.loops_accepted is None:
+        loops = "n/a"
+    else:
+        correct = "?" if row.loops_correct is None else str(row.loops_correct)
+        loops = f"{row.loops_accepted} / {correct}"
+    return name + [t_err, r_err, ate, loops, _num(row.fps, 2),
+                   _num(max(row.peak_mb) if row.peak_mb else None, 0)]
+
+
+def markdown(rows: list[Row], meta: dict) -> str:
+    """The table as markdown, with the conditions it was measured under."""
+    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    lines += ["| " + " | ".join(cells(r)) + " |" for r in rows]
+    lines.append("")
+    lines.append(f"frames/s: frames / median whole-process wall time over {meta['repeats']} "
+                 "interleaved repeat(s), interpreter start-up and imports included; peak MB: max "
+                 "RSS over the repeats (os.wait4). t_err/r_err: KITTI devkit segments of 100-800 m "
+                 "(n/a when the path is shorter). ATE: RMSE after rigid Umeyama alignment. Loops "
+                 "correct: estimated T_match_query within 1 m / 5 deg of the truth.")
+    for seq, ratio in meta["fps_vs_kiss_icp"].items():
+        text = ", ".join(f"{LABELS[s]} {v:.2f}x" for s, v in ratio.items())
+        lines.append(f"- {seq}: frames/s relative to stock KISS-ICP: {text}")
+    for r in rows:
+        for note in r.notes:
+            lines.append(f"- {r.sequence} / {LABELS[r.system]}: {note}")
+    lines.append(f"- measured {meta['date']} at commit {meta['commit']} on {meta['cpus']} CPUs")
+    return "\n".join(lines) + "\n"
+
+
+def as_json(rows: list[Row], meta: dict) -> dict:
+    """The table and the numbers behind it, for comparing a later run with this one."""
+    keep = ("t_err_pct", "r_err_deg_per_100m", "ate_rmse_m", "rpe_trans_m_mean",
+            "rpe_rot_deg_mean", "path_length_m", "est_path_length_m", "kitti_segments", "note")
+    out_rows = []
+    for r in rows:
+        out_rows.append({
+            "sequence": r.sequence, "system": r.system, "frames": r.frames,
+            **{k: r.metrics.get(k) for k in keep},
+            "loops_accepted": r.loops_accepted, "loops_correct": r.loops_correct,
+            "loop_score": r.metrics.get("loop_score"),
+            "fps": r.fps, "wall_s": r.wall_s, "peak_mb": max(r.peak_mb) if r.peak_mb else None,
+            "peak_mb_runs": r.peak_mb, "error": r.error, "notes": r.notes,
+            "cells": dict(zip(HEADER, cells(r))),
+        })
+    return {**meta, "columns": list(HEADER), "rows": out_rows}
+
+
+# ---------------------------------------------------------------------------------- main
+
+
+def parse_config_for(items: list[str]) -> dict[str, Path]:
+    """SEQNAME=FILE pairs; the files must exist."""
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            sys.exit(f"--config-for expects SEQNAME=FILE, got {item!r}")
+        if not Path(path).is_file():
+            sys.exit(f"--config-for {name}: {path} does not exist")
+        out[name] = Path(path)
+    return out
+
+
+def load_sequence(path: str, start: int, n_scans: int | None, configs: dict[str, Path]) -> Sequence:
+    """Open a sequence and cut its ground truth to the benchmarked frames, in the first frame."""
+    src = open_source(path)
+    if start >= len(src):
+        sys.exit(f"{path}: --start {start} is past the last scan ({len(src)} scans)")
+    n = len(src) - start if n_scans is None else min(n_scans, len(src) - start)
+    gt = None
+    if src.ground_truth is not None:
+        gt = src.ground_truth[start:start + n]
+        gt = inverse(gt[0]) @ gt
+    return Sequence(Path(path), src.name, start, n, gt, configs.get(src.name))
+
+
+def git_commit() -> str:
+    try:
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True,
+                             capture_output=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=HERE, text=True, capture_output=True).stdout.strip()
+        return sha + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequences", nargs="+", help="scan folders, KITTI sequences or bags")
+    ap.add_argument("--out", required=True, type=Path)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--config-for", action="append", default=[], metavar="SEQNAME=FILE",
+                    help="lidar-slam config overlay for the sequence named SEQNAME (folder name)")
+    ap.add_argument("--systems", default=",".join(SYSTEMS),
+                    help=f"comma-separated subset of {','.join(SYSTEMS)}")
+    ap.add_argument("--start", type=int, default=0, help="first scan of every sequence")
+    ap.add_argument("--n-scans", type=int, default=None, help="scans per sequence (default all)")
+    args = ap.parse_args(argv)
+    systems = [s.strip() for s in args.systems.split(",") if s.strip()]
+    unknown = sorted(set(systems) - set(SYSTEMS))
+    if unknown or args.repeats < 1:
+        sys.exit(f"unknown systems {unknown} (choose from {SYSTEMS})" if unknown
+                 else "--repeats must be at least 1")
+    systems = [s for s in systems if available(s)]
+    configs = parse_config_for(args.config_for)
+    try:
+        seqs = [load_sequence(p, args.start, args.n_scans, configs) for p in args.sequences]
+    except LidarSlamError as exc:
+        sys.exit(f"benchmark: {exc}")
+    missing = sorted(set(configs) - {s.name for s in seqs})
+    if missing:
+        sys.exit(f"--config-for names {missing} match no sequence ({[s.name for s in seqs]})")
+
+    rows: list[Row] = []
+    for seq in seqs:
+        seq_dir = args.out / seq.name
+        seq_dir.mkdir(parents=True, exist_ok=True)
+        gt_file = None
+        if seq.gt is not None:
+            gt_file = seq_dir / "ground_truth_kitti.txt"
+            write_kitti_poses(gt_file, seq.gt)
+        seq_rows = {s: Row(seq.name, s, seq.n) for s in systems}
+        for rep in range(args.repeats):  # interleaved so every system sees the same load
+            for s, row in seq_rows.items():
+                if row.error:
+                    continue
+                out = seq_dir / s
+                out.mkdir(exist_ok=True)
+                wall, mb, code = timed(command(s, seq, out), out / "log.txt")
+                print(f"{seq.name} {LABELS[s]} repeat {rep + 1}/{args.repeats}: {wall:.2f} s, "
+                      f"{mb:.0f} MB" + (f", exit {code}" if code else ""), flush=True)
+                if code != 0:
+                    row.error = f"exit code {code}, see {out / 'log.txt'}"
+                    continue
+                row.wall_s.append(wall)
+                row.peak_mb.append(mb)
+        for s, row in seq_rows.items():
+            if not row.error:
+                evaluate_row(row, seq, seq_dir / s, gt_file)
+            rows.append(row)
+
+    ratios: dict[str, dict[str, float]] = {}
+    for seq in seqs:
+        by = {r.system: r for r in rows if r.sequence == seq.name and r.fps}
+        if "kiss-icp" in by:
+            ratios[seq.name] = {s: r.fps / by["kiss-icp"].fps for s, r in by.items()
+                                if s != "kiss-icp"}
+    meta = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
+            "cpus": os.cpu_count(), "repeats": args.repeats, "start": args.start,
+            "n_scans": args.n_scans, "systems": systems,
+            "configs": {k: str(v) for k, v in configs.items()}, "fps_vs_kiss_icp": ratios}
+    args.out.mkdir(parents=True, exist_ok=True)
+    md = markdown(rows, meta)
+    (args.out / "benchmark.md").write_text(md)
+    (args.out / "benchmark.json").write_text(json.dumps(as_json(rows, meta), indent=2) + "\n")
+    print()
+    print(md, end="")
+    print(f"wrote {args.out / 'benchmark.md'} and {args.out / 'benchmark.json'}")
+    return 1 if any(r.error for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
