@@ -1,0 +1,262 @@
+"""g2o pose-graph files: 2D (VERTEX_SE2 / EDGE_SE2) and 3D (VERTEX_SE3:QUAT / EDGE_SE3:QUAT).
+
+In memory, poses are homogeneous matrices (3x3 for 2D, 4x4 for 3D) and every information matrix is
+in gtsam's tangent order: 2D (x y theta), the same as g2o's; 3D rotation first (rx ry rz tx ty tz),
+whereas g2o's EDGE_SE3:QUAT stores [x y z rx ry rz] (translation first). The permutation between the
+two happens here and nowhere else. Like gtsam's readG2o, the rotation block is taken as is
+(g2o's own rotation residual is the quaternion's vector part, about half the angle; gtsam's is
+the full angle).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lidar_slam.errors import InputError
+
+log = logging.getLogger(__name__)
+
+# Index i of gtsam's rotation-first tangent is index _PERM_3D[i] of g2o's translation-first one.
+# The permutation is its own inverse, so the same array converts back.
+_PERM_3D = np.array([3, 4, 5, 0, 1, 2])
+
+# tag -> (dims, number of numeric fields after the tag)
+_RECORDS = {
+    "VERTEX_SE2": (2, 4),
+    "EDGE_SE2": (2, 5 + 6),
+    "VERTEX_SE3:QUAT": (3, 8),
+    "EDGE_SE3:QUAT": (3, 9 + 21),
+}
+
+
+@dataclass(frozen=True)
+class G2oEdge:
+    """Measurement T_i_j (pose of j in i's frame) with information in gtsam tangent order."""
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
+
+
+@dataclass(frozen=True)
+class G2oGraph:
+    """A g2o file: initial poses T_world_node (from VERTEX lines or chained edges) and edges."""
+
+    dims: int
+    poses: dict[int, np.ndarray]
+    edges: list[G2oEdge]
+    n_vertex_lines: int
+
+
+def g2o_to_gtsam_information(info_g2o: np.ndarray) -> np.ndarray:
+    """3D information [x y z rx ry rz] (g2o) -> [rx ry rz tx ty tz] (gtsam); works both ways."""
+    return np.asarray(info_g2o)[..., _PERM_3D[:, None], _PERM_3D[None, :]]
+
+
+gtsam_to_g2o_information = g2o_to_gtsam_information
+
+
+def se2_matrix(x: float, y: float, theta_rad: float) -> np.ndarray:
+    """3x3 homogeneous SE(2) pose."""
+    c, s = np.cos(theta_rad), np.sin(theta_rad)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def se2_params(T: np.ndarray) -> tuple[float, float, float]:
+    """(x, y, theta_rad) of a 3x3 homogeneous SE(2) pose."""
+    return float(T[0, 2]), float(T[1, 2]), float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def _se3_matrix(v: np.ndarray, path: Path, lineno: int) -> np.ndarray:
+    q = v[3:7]
+    norm = np.linalg.norm(q)
+    if not norm > 1e-9:
+        raise InputError(path, f"line {lineno}: quaternion has zero norm")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+def _info_from_upper(values: np.ndarray, n: int) -> np.ndarray:
+    info = np.zeros((n, n))
+    iu = np.triu_indices(n)
+    info[iu] = values
+    info.T[iu] = values
+    return info
+
+
+def _parse_line(tokens: list[str], path: Path, lineno: int) -> tuple[np.ndarray, list[int]]:
+    tag = tokens[0]
+    n_fields = _RECORDS[tag][1]
+    if len(tokens) - 1 != n_fields:
+        raise InputError(path, f"line {lineno}: {tag} needs {n_fields} fields, "
+                               f"got {len(tokens) - 1}")
+    n_ids = 2 if tag.startswith("EDGE") else 1
+    try:
+        ids = [int(t) for t in tokens[1 : 1 + n_ids]]
+    except ValueError:
+        raise InputError(path, f"line {lineno}: {tag} node ids must be integers") from None
+    try:
+        values = np.array([float(t) for t in tokens[1 + n_ids :]])
+    except ValueError:
+        raise InputError(path, f"line {lineno}: {tag} has a field that is not a number") from None
+    if not np.all(np.isfinite(values)):
+        raise InputError(path, f"line {lineno}: {tag} has a non-finite value")
+    return values, ids
+
+
+def _chain(nodes: set[int], edges: list[G2oEdge], path: Path) -> dict[int, np.ndarray]:
+    """Initial poses from consecutive (i, i+1) edges; other edges only for nodes still unreached."""
+    inv = np.linalg.inv
+    first = min(nodes)
+    poses = {first: np.eye(edges[0].T_i_j.shape[0])}
+    step: dict[tuple[int, int], np.ndarray] = {}
+    for e in edges:
+        step.setdefault((e.i, e.j), e.T_i_j)
+        step.setdefault((e.j, e.i), inv(e.T_i_j))
+    for k in sorted(nodes)[1:]:
+        if k - 1 in poses and (k - 1, k) in step:
+            poses[k] = poses[k - 1] @ step[(k - 1, k)]
+    if len(poses) < len(nodes):
+        neighbours: dict[int, list[int]] = {n: [] for n in nodes}
+        for a, b in step:
+            neighbours[a].append(b)
+        queue = deque(poses)
+        while queue:
+            a = queue.popleft()
+            for b in neighbours[a]:
+                if b not in poses:
+                    poses[b] = poses[a] @ step[(a, b)]
+                    queue.append(b)
+    missing = nodes - poses.keys()
+    if missing:
+        raise InputError(path, f"{len(missing)} nodes (e.g. {min(missing)}) are not connected to "
+                               f"node {first}; cannot build an initial guess without VERTEX lines")
+    return poses
+
+
+def read_g2o(path: str | Path) -> G2oGraph:
+    """Read a 2D or 3D g2o pose graph; without VERTEX lines, chain (i, i+1) edges from identity."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "g2o file does not exist")
+    dims: int | None = None
+    poses: dict[int, np.ndarray] = {}
+    edges: list[G2oEdge] = []
+    edge_lines: list[int] = []
+    with open(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            tokens = line.split()
+            if not tokens or tokens[0].startswith("#"):
+                continue
+            tag = tokens[0]
+            if tag == "FIX":
+                log.info("%s: line %d: FIX ignored (the first node gets a prior)", path, lineno)
+                continue
+            if tag not in _RECORDS:
+                raise InputError(path, f"line {lineno}: unsupported record '{tag}' "
+                                       f"(expected one of {', '.join(_RECORDS)})")
+            if dims is None:
+                dims = _RECORDS[tag][0]
+            elif _RECORDS[tag][0] != dims:
+                raise InputError(path, f"line {lineno}: {tag} mixes {_RECORDS[tag][0]}D with "
+                                       f"{dims}D records")
+            values, ids = _parse_line(tokens, path, lineno)
+            if tag.startswith("VERTEX"):
+                if ids[0] in poses:
+                    raise InputError(path, f"line {lineno}: duplicate vertex {ids[0]}")
+                poses[ids[0]] = (se2_matrix(*values) if dims == 2
+                                 else _se3_matrix(values, path, lineno))
+                continue
+            i, j = ids
+            if i == j:
+                raise InputError(path, f"line {lineno}: edge joins node {i} to itself")
+            if dims == 2:
+                T = se2_matrix(*values[:3])
+                info = _info_from_upper(values[3:], 3)
+            else:
+                T = _se3_matrix(values[:7], path, lineno)
+                info = g2o_to_gtsam_information(_info_from_upper(values[7:], 6))
+            edges.append(G2oEdge(i, j, T, info))
+            edge_lines.append(lineno)
+    if not edges:
+        raise InputError(path, "no EDGE_SE2 or EDGE_SE3:QUAT records")
+    _check_information(edges, edge_lines, path)
+    nodes = {e.i for e in edges} | {e.j for e in edges}
+    n_vertex_lines = len(poses)
+    if poses:
+        for e, lineno in zip(edges, edge_lines, strict=True):
+            for k in (e.i, e.j):
+                if k not in poses:
+                    raise InputError(path, f"line {lineno}: edge uses node {k}, which has no "
+                                           "VERTEX line")
+    else:
+        poses = _chain(nodes, edges, path)
+    assert dims is not None
+    return G2oGraph(dims, poses, edges, n_vertex_lines)
+
+
+def _check_information(edges: list[G2oEdge], edge_lines: list[int], path: Path) -> None:
+    """Keep PD information; make an indefinite one block-diagonal (rotation | translation).
+
+    Some benchmark files (cubicle.g2o: 5021 of 16869 edges) carry rotation-translation cross terms
+    that make the matrix indefinite. SE-Sync only uses the diagonal blocks; gtsam would silently
+    factor garbage. Dropping the cross block is the least surprising repair; if the diagonal blocks
+    themselves are not PD the file is rejected.
+    """
+    infos = np.stack([e.information for e in edges])
+    bad = np.flatnonzero(~(np.linalg.eigvalsh(infos)[:, 0] > 0))
+    if not len(bad):
+        return
+    n = infos.shape[1]
+    rot = np.zeros(n, dtype=bool)
+    rot[[2] if n == 3 else [0, 1, 2]] = True
+    repaired = infos[bad] * (rot[:, None] == rot[None, :])
+    lowest = np.linalg.eigvalsh(repaired)[:, 0]
+    still_bad = np.flatnonzero(~(lowest > 0))
+    if len(still_bad):
+        k = bad[still_bad[0]]
+        raise InputError(path, f"line {edge_lines[k]}: information matrix is not positive "
+                               f"definite (smallest eigenvalue of its diagonal blocks "
+                               f"{lowest[still_bad[0]]:.3g})")
+    for k, info in zip(bad, repaired, strict=True):
+        e = edges[k]
+        edges[k] = G2oEdge(e.i, e.j, e.T_i_j, info)
+    log.warning("%s: %d of %d information matrices are indefinite (first: line %d); dropped their "
+                "rotation-translation cross terms", path, len(bad), len(edges), edge_lines[bad[0]])
+
+
+def _fmt(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+def write_g2o(path: str | Path, graph: G2oGraph) -> None:
+    """Write vertices (sorted by id) then edges; 3D information goes back to g2o's order."""
+    n = 3 if graph.dims == 2 else 6
+    iu = np.triu_indices(n)
+    lines = []
+    keys = sorted(graph.poses)
+    if graph.dims == 2:
+        for k in keys:
+            lines.append(f"VERTEX_SE2 {k} {_fmt(se2_params(graph.poses[k]))}")
+        for e in graph.edges:
+            lines.append(f"EDGE_SE2 {e.i} {e.j} {_fmt(se2_params(e.T_i_j))} "
+                         f"{_fmt(e.information[iu])}")
+    else:
+        def xyz_quat(T: np.ndarray) -> np.ndarray:
+            return np.r_[T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()]
+
+        for k in keys:
+            lines.append(f"VERTEX_SE3:QUAT {k} {_fmt(xyz_quat(graph.poses[k]))}")
+        for e in graph.edges:
+            info = gtsam_to_g2o_information(e.information)
+            lines.append(f"EDGE_SE3:QUAT {e.i} {e.j} {_fmt(xyz_quat(e.T_i_j))} {_fmt(info[iu])}")
+    Path(path).write_text("\n".join(lines) + "\n")
