@@ -17,7 +17,7 @@ from lidar_slam.errors import LidarSlamError
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import deskew
 from lidar_slam.frontend.downsample import voxel_downsample
-from lidar_slam.geometry import inverse
+from lidar_slam.geometry import interpolate, inverse, transform_points
 from lidar_slam.keyframes import KeyframeSelector
 from lidar_slam.odometry import Odometry
 from lidar_slam.types import Keyframe, Scan
@@ -85,9 +85,20 @@ class Pipeline:
             T_world_scan = self.odometry.predict()
             self._append(scan, T_world_scan)
             return
+        ref_s = 0.0
         if self.cfg.data.deskew and scan.point_times is not None:
-            points = deskew(points, scan.point_times[keep], self.odometry.last_delta, self._last_dt)
-        T_world_scan = self.odometry.step(points)
+            # Deskew (once) to the middle of the sweep: the correction, and with it the effect of
+            # a wrong velocity guess, is half what deskewing to an end of the sweep gives; that
+            # feedback makes start-referenced deskew diverge on fast sparse scans.
+            times = scan.point_times[keep]
+            ref_s = 0.5 * (float(times.min()) + float(times.max()))
+            points = deskew(points, times - ref_s, self.odometry.last_delta, self._last_dt)
+        T_world_ref = self.odometry.step(points)
+        T_world_scan = T_world_ref
+        if ref_s != 0.0:  # the pose (and the cloud) refer to the stamp, not the mid-sweep
+            T_ref_stamp = interpolate(np.eye(4), self.odometry.last_delta, -ref_s / dt)
+            T_world_scan = T_world_ref @ T_ref_stamp
+            points = transform_points(inverse(T_ref_stamp), points)
         self._last_dt, self._last_stamp = dt, scan.stamp_s
         r.seconds["odometry"] += time.perf_counter() - t0
         is_kf = self.keyframes.is_keyframe(T_world_scan)
