@@ -50,7 +50,7 @@ class ScanContextConfig(_Section):
     exclude_recent: int = 30
     local_search_sectors: int = 2
     # Level each cloud on its fitted ground plane before binning (hand-held / tilted sensors); the
-    # yaw guess is then about the ground normal. Bin heights use the fitted sensor height when found.
+    # yaw guess is then about the ground normal. Bins use the fitted sensor height when found.
     level_to_ground: bool = True
     max_tilt_deg: float = 30.0
     # The ring-key KD-tree is rebuilt once this many keyframes were added since the last build;
@@ -59,20 +59,33 @@ class ScanContextConfig(_Section):
 
 
 class VerifyConfig(_Section):
-    method: Literal["point_to_plane", "gicp"] = "gicp"
-    voxel_m: float = 0.3
+    method: Literal["point_to_plane", "gicp"] = "point_to_plane"
+    voxel_m: float = 0.5
     submap_radius: int = 2
-    max_correspondence_m: float = 1.0
-    min_fitness: float = 0.6
+    # Coarse stage (every yaw hypothesis): clouds at coarse_voxel_m, correspondences up to
+    # coarse_correspondence_m then half of it, to pull in the few metres between revisits.
+    coarse_voxel_m: float = 1.5
+    coarse_correspondence_m: float = 3.0
+    # Hypotheses are ranked (and the margin taken) by coarse fitness: share of coarse query
+    # points within coarse_inlier_m of the match after the coarse stage.
+    coarse_inlier_m: float = 0.5
+    # The winner is re-aligned from starts pushed this far sideways (0: off); a different pose
+    # found that way competes in the margin like another yaw hypothesis.
+    probe_shift_m: float = 4.0
+    # Fine stage at voxel_m.
+    max_correspondence_m: float = 0.6
+    min_fitness: float = 0.5
     max_rmse_m: float = 0.3
-    max_yaw_disagreement_deg: float = 20.0
+    # ICP may turn at most this far from the yaw hypothesis it started at (the yaw guess plus a
+    # multiple of 90 deg): a guess a few sectors off must still pass, a slide must not.
+    max_yaw_disagreement_deg: float = 30.0
     try_yaw_offsets: bool = True
     # Fitness = share of query points with a match point within inlier_m after ICP.
     inlier_m: float = 0.3
-    # The best hypothesis must beat the best *different* converged pose by this much fitness.
-    min_margin: float = 0.1
+    # The best hypothesis must beat the best *different* converged pose by this much coarse fitness.
+    min_margin: float = 0.12
     max_translation_m: float = 10.0
-    max_iterations: int = 30
+    max_iterations: int = 20
     # Level both clouds on their ground planes to build the yaw hypotheses about gravity.
     level_to_ground: bool = True
     # The information matrix keeps the shape of the point-to-plane Hessian but is scaled down

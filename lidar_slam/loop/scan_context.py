@@ -1,0 +1,192 @@
+"""Scan Context place recognition (Kim & Kim, IROS 2018): a rings x sectors polar grid of the
+highest point per bin, ring keys in a KD-tree for retrieval, column-shift alignment for the yaw.
+
+Yaw convention: a candidate's yaw_guess_rad is the yaw of T_match_query, i.e. the rotation that
+takes query-frame directions into the match frame (p_match = Rz(yaw) p_query, about the levelled
+z axis). A point seen at azimuth a by the query is seen at azimuth a + yaw by the match, so query
+column j lines up with match column j + shift and yaw = shift * 360 / sectors degrees.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lidar_slam.config import ScanContextConfig
+from lidar_slam.geometry import make_pose
+from lidar_slam.loop.ground import level_ground
+from lidar_slam.types import LoopCandidate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    """A keyframe's scan context (rings, sectors), metres above ground; its keys and levelling."""
+
+    grid: np.ndarray
+    ring_key: np.ndarray
+    sector_key: np.ndarray
+    R_level_kf: np.ndarray
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    """Candidates below the threshold (best first) and the best distance seen, kept or not."""
+
+    candidates: list[LoopCandidate] = field(default_factory=list)
+    best_distance: float = 1.0
+    best_match: int | None = None
+    best_yaw_rad: float = 0.0
+    compared: int = 0
+
+
+def describe(points_kf: np.ndarray, cfg: ScanContextConfig) -> Descriptor:
+    """Scan context of a cloud given in its keyframe frame (N, 3) metres."""
+    pts = np.asarray(points_kf, dtype=np.float64)
+    R = np.eye(3)
+    height = cfg.sensor_height_m
+    if cfg.level_to_ground and len(pts):
+        ground = level_ground(pts, max_tilt_deg=cfg.max_tilt_deg)
+        R = ground.R_level_sensor
+        if ground.height_m is not None:
+            height = ground.height_m
+        pts = pts @ R.T
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    keep = (r < cfg.max_radius_m) & (r > 0)
+    r, pts = r[keep], pts[keep]
+    ring = np.minimum((r / cfg.max_radius_m * cfg.rings).astype(np.int64), cfg.rings - 1)
+    azimuth = np.arctan2(pts[:, 1], pts[:, 0]) + np.pi
+    sector = (azimuth / (2 * np.pi) * cfg.sectors).astype(np.int64) % cfg.sectors
+    grid = np.zeros(cfg.rings * cfg.sectors)
+    np.maximum.at(grid, ring * cfg.sectors + sector, np.maximum(pts[:, 2] + height, 0.0))
+    grid = grid.reshape(cfg.rings, cfg.sectors)
+    return Descriptor(grid, grid.mean(axis=1), grid.mean(axis=0), R)
+
+
+def _shift_index(sectors: int, shifts: np.ndarray) -> np.ndarray:
+    """(len(shifts), sectors) column indices j + s (mod sectors)."""
+    return (np.arange(sectors)[None, :] + shifts[:, None]) % sectors
+
+
+def column_distances(query: np.ndarray, match: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """Cosine column distance in [0, 1] for each shift: query column j against match column j+s,
+    averaged over the columns that are non-empty in both (1.0 when none are)."""
+    m = match[:, _shift_index(query.shape[1], shifts)]  # (rings, n_shifts, sectors)
+    dot = np.einsum("rj,rsj->sj", query, m)
+    nq = np.linalg.norm(query, axis=0)[None, :]
+    nm = np.linalg.norm(m, axis=0)
+    valid = (nq > 0) & (nm > 0)
+    cos = np.where(valid, dot / np.where(valid, nq * nm, 1.0), 0.0)
+    count = valid.sum(axis=1)
+    return np.where(count > 0, 1.0 - cos.sum(axis=1) / np.maximum(count, 1), 1.0)
+
+
+def align(query: Descriptor, match: Descriptor, local_search_sectors: int) -> tuple[float, int]:
+    """(distance, shift): coarse shift from the sector keys, refined by a local search."""
+    sectors = query.grid.shape[1]
+    all_shifts = np.arange(sectors)
+    rolled = match.sector_key[_shift_index(sectors, all_shifts)]
+    coarse = int(np.argmin(np.linalg.norm(rolled - query.sector_key[None, :], axis=1)))
+    local = (coarse + np.arange(-local_search_sectors, local_search_sectors + 1)) % sectors
+    dist = column_distances(query.grid, match.grid, local)
+    best = int(np.argmin(dist))
+    return float(dist[best]), int(local[best])
+
+
+def shift_to_yaw(shift: int, sectors: int) -> float:
+    """Yaw of T_match_query in radians, wrapped to (-pi, pi], for a column shift."""
+    yaw = 2 * np.pi * shift / sectors
+    return float(np.arctan2(np.sin(yaw), np.cos(yaw)))
+
+
+class ScanContextIndex:
+    """Keyframe descriptors with a lazily rebuilt ring-key KD-tree; query before add."""
+
+    def __init__(self, cfg: ScanContextConfig):
+        self.cfg = cfg
+        self._ids: list[int] = []
+        self._desc: list[Descriptor] = []
+        self._by_id: dict[int, Descriptor] = {}
+        self._tree: cKDTree | None = None
+        self._n_tree = 0
+        self._last: tuple[int, Descriptor] | None = None
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def _describe(self, kf_id: int, points_kf: np.ndarray) -> Descriptor:
+        if self._last is not None and self._last[0] == kf_id:
+            return self._last[1]
+        desc = describe(points_kf, self.cfg)
+        self._last = (kf_id, desc)
+        return desc
+
+    def add(self, kf_id: int, points_kf: np.ndarray) -> None:
+        """Index a keyframe (ids increasing); reuses the descriptor a query of kf_id computed."""
+        if self._ids and kf_id <= self._ids[-1]:
+            raise ValueError(f"keyframe ids must increase: {kf_id} after {self._ids[-1]}")
+        desc = self._describe(kf_id, points_kf)
+        self._ids.append(kf_id)
+        self._desc.append(desc)
+        self._by_id[kf_id] = desc
+        if len(self._ids) - self._n_tree >= self.cfg.tree_rebuild_every:
+            self._tree = cKDTree(np.stack([d.ring_key for d in self._desc]))
+            self._n_tree = len(self._ids)
+
+    def R_level_kf(self, kf_id: int) -> np.ndarray:
+        """Levelling rotation (3x3) used for an indexed keyframe's descriptor."""
+        return self._by_id[kf_id].R_level_kf
+
+    def initial_guess(self, candidate: LoopCandidate, query_points: np.ndarray | None = None
+                      ) -> np.ndarray:
+        """T_match_query (4x4) from the yaw guess and both keyframes' levelling rotations."""
+        R_q = (self._by_id[candidate.query].R_level_kf if candidate.query in self._by_id
+               else self._describe(candidate.query, query_points).R_level_kf)
+        R_m = self._by_id[candidate.match].R_level_kf
+        c, s = np.cos(candidate.yaw_guess_rad), np.sin(candidate.yaw_guess_rad)
+        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return make_pose(R_m.T @ Rz @ R_q, np.zeros(3))
+
+    def _nearest(self, key: np.ndarray, n_eligible: int) -> np.ndarray:
+        """Positions (< n_eligible) of the cfg.candidates ring keys nearest to key."""
+        pos: list[np.ndarray] = []
+        dist: list[np.ndarray] = []
+        n_tree = min(self._n_tree, n_eligible)
+        if n_tree > 0 and self._tree is not None:
+            k = min(self._n_tree, self.cfg.candidates + self._n_tree - n_tree)
+            d, i = self._tree.query(key, k=k)
+            d, i = np.atleast_1d(d), np.atleast_1d(i)
+            ok = i < n_eligible
+            pos.append(i[ok])
+            dist.append(d[ok])
+        if n_eligible > self._n_tree:  # added since the last rebuild: brute force
+            extra = np.arange(self._n_tree, n_eligible)
+            keys = np.stack([self._desc[j].ring_key for j in extra])
+            pos.append(extra)
+            dist.append(np.linalg.norm(keys - key[None, :], axis=1))
+        if not pos:
+            return np.zeros(0, dtype=np.int64)
+        pos_all, dist_all = np.concatenate(pos), np.concatenate(dist)
+        return pos_all[np.argsort(dist_all, kind="stable")[: self.cfg.candidates]]
+
+    def query(self, kf_id: int, points_kf: np.ndarray) -> QueryResult:
+        """Loop candidates for keyframe kf_id among keyframes at least exclude_recent ids older."""
+        limit = kf_id - self.cfg.exclude_recent
+        n_eligible = int(np.searchsorted(np.asarray(self._ids), limit, side="right"))
+        if n_eligible == 0:
+            return QueryResult()
+        desc = self._describe(kf_id, points_kf)
+        scored = []
+        for j in self._nearest(desc.ring_key, n_eligible):
+            dist, shift = align(desc, self._desc[j], self.cfg.local_search_sectors)
+            scored.append((dist, self._ids[j], shift_to_yaw(shift, self.cfg.sectors)))
+        scored.sort()
+        best = scored[0]
+        kept = [LoopCandidate(kf_id, m, d, y) for d, m, y in scored if d < self.cfg.threshold]
+        log.debug("kf %d: best scan-context distance %.3f to kf %d (%d kept)", kf_id, best[0],
+                  best[1], len(kept))
+        return QueryResult(kept, best[0], best[1], best[2], len(scored))

@@ -1,0 +1,196 @@
+"""Geometric verification of a loop candidate: ICP from several yaw hypotheses, then gates on
+fitness, RMSE, the margin over the best different pose, and how far ICP turned from its start.
+A wrong loop accepted is worse than a loop missed.
+
+Descriptor yaw guesses in rectangular rooms are often off by a multiple of 90 deg (180 deg on
+reverse revisits), and ICP started there settles on a wrong pose whose fitness still looks
+plausible. So every start yaw_guess + k * 90 deg is aligned on coarse clouds (large
+correspondence distances pull in the metres between revisits), the hypotheses are ranked by
+coarse fitness, the winner must beat the best *different* solution by a margin, and only the
+winner is refined on the fine clouds. open3d (legacy pipelines) does the ICP.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidar_slam.config import VerifyConfig
+from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg, yaw_matrix, yaw_rad
+from lidar_slam.loop.ground import level_ground
+from lidar_slam.o3d import o3d
+from lidar_slam.types import LoopCandidate, LoopConstraint
+
+log = logging.getLogger(__name__)
+reg = o3d.pipelines.registration
+
+# Two converged poses closer than this are the same solution (for the margin gate).
+_SAME_ROT_DEG = 10.0
+_SAME_TRANS_M = 1.0
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One coarse alignment: its start (yaw offset from the initial guess in deg, and for basin
+    probes the sideways push in metres, levelled match frame), result and coarse fitness; yaws
+    are of T_match_query about the match's ground normal (rad)."""
+
+    offset_deg: float
+    T_match_query: np.ndarray
+    coarse_fitness: float
+    yaw_start_rad: float
+    yaw_icp_rad: float
+    push_m: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class VerificationResult:
+    """Outcome of verify(): fitness / rmse_m of the refined winner on the fine clouds, margin in
+    coarse fitness, yaws of T_match_query about the levelled z axis (rad)."""
+
+    accepted: bool
+    reason: str
+    fitness: float
+    rmse_m: float
+    yaw_guess_rad: float
+    yaw_icp_rad: float
+    margin: float
+    constraint: LoopConstraint | None
+    T_match_query: np.ndarray | None = None  # the refined winner, accepted or not
+    hypotheses: tuple[Hypothesis, ...] = ()
+
+
+def _cloud(points: np.ndarray, voxel_m: float, normals: bool):
+    """Voxel-downsampled open3d cloud, with normals when it is an ICP target."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    pcd = pcd.voxel_down_sample(voxel_m)
+    if normals:
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
+    return pcd
+
+
+def _icp(src, tgt, T0: np.ndarray, max_corr_m: float, cfg: VerifyConfig) -> np.ndarray:
+    """One ICP run query -> match from T0; returns T_match_query."""
+    criteria = reg.ICPConvergenceCriteria(1e-5, 1e-5, cfg.max_iterations)
+    if cfg.method == "gicp":
+        est = reg.TransformationEstimationForGeneralizedICP()
+        result = reg.registration_generalized_icp(src, tgt, max_corr_m, T0, est, criteria)
+    else:
+        est = reg.TransformationEstimationPointToPlane()
+        result = reg.registration_icp(src, tgt, max_corr_m, T0, est, criteria)
+    return np.asarray(result.transformation)
+
+
+def information_matrix(src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np.ndarray,
+                       corr: np.ndarray, T_match_query: np.ndarray, sigma_m: float,
+                       cfg: VerifyConfig) -> np.ndarray:
+    """6x6 information of T_match_query, rotation first (rx ry rz tx ty tz), for a perturbation
+    applied on the left in the match frame.
+
+    The point-to-plane Hessian sum(J^T J) / sigma^2 with J = [(p x n)^T, n^T] keeps the shape
+    (a corridor stays weak along its axis), but thousands of neighbouring residuals are not
+    independent, so it is scaled down uniformly until no direction is more certain than
+    cfg.info_min_rot_sigma_deg / cfg.info_min_trans_sigma_m. corr: (K, 2) query/match indices.
+    """
+    p = src_pts[corr[:, 0]] @ T_match_query[:3, :3].T + T_match_query[:3, 3]
+    n = tgt_normals[corr[:, 1]]
+    J = np.hstack([np.cross(p, n), n])
+    H = J.T @ J / max(sigma_m, 1e-3) ** 2
+    var = np.diag(np.linalg.pinv(H))
+    floor_r = np.radians(cfg.info_min_rot_sigma_deg) ** 2
+    floor_t = cfg.info_min_trans_sigma_m**2
+    scale = max(1.0, floor_r / max(var[:3].min(), 1e-30), floor_t / max(var[3:].min(), 1e-30))
+    return 0.5 * (H + H.T) / scale
+
+
+def _wrap(a: float) -> float:
+    return float(np.arctan2(np.sin(a), np.cos(a)))
+
+
+def _distinct(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """True when two poses are different solutions (not the same one found twice)."""
+    d = inverse(T_a) @ T_b
+    return bool(rotation_angle_deg(d) > _SAME_ROT_DEG or np.linalg.norm(d[:3, 3]) > _SAME_TRANS_M)
+
+
+def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.ndarray,
+           cfg: VerifyConfig, T_match_query_init: np.ndarray | None = None) -> VerificationResult:
+    """Verify a candidate; query_points in the query keyframe frame, match_points (a keyframe or a
+    small submap) in the match keyframe frame, metres. Without T_match_query_init the start is
+    the candidate's yaw guess about both clouds' ground normals (see scan_context's convention).
+    """
+    gicp = cfg.method == "gicp"
+    src, tgt = _cloud(query_points, cfg.voxel_m, gicp), _cloud(match_points, cfg.voxel_m, True)
+    src_c = _cloud(np.asarray(src.points), cfg.coarse_voxel_m, gicp)
+    tgt_c = _cloud(np.asarray(tgt.points), cfg.coarse_voxel_m, True)
+    if min(len(src_c.points), len(tgt_c.points)) < 10:
+        return VerificationResult(False, "too few points", 0.0, np.inf, candidate.yaw_guess_rad,
+                                  np.nan, 0.0, None)
+    L_q = L_m = np.eye(4)
+    if cfg.level_to_ground:
+        L_q = make_pose(level_ground(np.asarray(src.points)).R_level_sensor, np.zeros(3))
+        L_m = make_pose(level_ground(np.asarray(tgt.points)).R_level_sensor, np.zeros(3))
+    if T_match_query_init is None:
+        T_match_query_init = inverse(L_m) @ yaw_matrix(candidate.yaw_guess_rad) @ L_q
+
+    def levelled_yaw(T: np.ndarray) -> float:
+        return yaw_rad(L_m @ T @ inverse(L_q))
+
+    # 1. Coarse alignment of every yaw hypothesis, ranked by coarse fitness.
+    hyps = []
+    for off in (0.0, 90.0, 180.0, 270.0) if cfg.try_yaw_offsets else (0.0,):
+        T0 = inverse(L_m) @ yaw_matrix(np.radians(off)) @ L_m @ T_match_query_init
+        T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
+        T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
+        fit = reg.evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
+        hyps.append(Hypothesis(off, T, fit, levelled_yaw(T0), levelled_yaw(T)))
+    # Probe the winner's basin: restarts pushed a few metres sideways (repetitive halls and
+    # corridors have a second minimum one bay along) must not find a rival as good as it.
+    if cfg.probe_shift_m > 0:
+        top = max(hyps, key=lambda h: h.coarse_fitness)
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            push = (cfg.probe_shift_m * dx, cfg.probe_shift_m * dy)
+            T0 = inverse(L_m) @ make_pose(np.eye(3), [*push, 0.0]) @ L_m @ top.T_match_query
+            T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
+            T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
+            fit = reg.evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
+            hyps.append(Hypothesis(top.offset_deg, T, fit, top.yaw_start_rad, levelled_yaw(T),
+                                   push))
+    best = max(hyps, key=lambda h: h.coarse_fitness)
+    rivals = [h.coarse_fitness for h in hyps if _distinct(h.T_match_query, best.T_match_query)]
+    margin = best.coarse_fitness - max(rivals, default=0.0)
+
+    # 2. Refine the winner on the fine clouds and score it there.
+    T = _icp(src, tgt, best.T_match_query, cfg.max_correspondence_m, cfg)
+    ev = reg.evaluate_registration(src, tgt, cfg.inlier_m, T)
+    fitness, rmse = ev.fitness, (ev.inlier_rmse if ev.fitness > 0 else np.inf)
+    yaw_icp = levelled_yaw(T)
+
+    # 3. Gates.
+    fails = []
+    if fitness < cfg.min_fitness:
+        fails.append(f"fitness {fitness:.2f} < {cfg.min_fitness:.2f}")
+    if rmse > cfg.max_rmse_m:
+        fails.append(f"rmse {rmse:.3f} m > {cfg.max_rmse_m:.3f} m")
+    if len(hyps) > 1 and margin < cfg.min_margin:
+        fails.append(f"ambiguous: margin {margin:.2f} < {cfg.min_margin:.2f}")
+    turned = abs(np.degrees(_wrap(yaw_icp - best.yaw_start_rad)))
+    if turned > cfg.max_yaw_disagreement_deg:
+        fails.append(f"ICP turned {turned:.0f} deg from its start")
+    if np.linalg.norm(T[:3, 3]) > cfg.max_translation_m:
+        fails.append(f"translation {np.linalg.norm(T[:3, 3]):.1f} m > {cfg.max_translation_m} m")
+    reason = "; ".join(fails)
+
+    constraint = None
+    if not fails:
+        info = information_matrix(np.asarray(src.points), np.asarray(tgt.points),
+                                  np.asarray(tgt.normals), np.asarray(ev.correspondence_set), T,
+                                  rmse, cfg)
+        constraint = LoopConstraint(candidate.query, candidate.match, T, info, fitness, rmse)
+    log.debug("loop %d->%d: fitness %.2f rmse %.3f margin %.2f yaw %+.0f -> %+.0f deg: %s",
+              candidate.query, candidate.match, fitness, rmse, margin,
+              np.degrees(candidate.yaw_guess_rad), np.degrees(yaw_icp), reason or "accepted")
+    return VerificationResult(not fails, reason, fitness, rmse, candidate.yaw_guess_rad, yaw_icp,
+                              margin, constraint, T, tuple(hyps))

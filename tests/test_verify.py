@@ -1,0 +1,183 @@
+"""Loop verification stage: multi-hypothesis ICP and its gates on the real indoor Ouster sequence
+(reference poses: line k of poses.txt is file 100 + k), plus the information matrix's layout.
+
+Query clouds are single keyframe clouds (0.5 m voxels, as the pipeline keeps them); match clouds
+are submaps of the match scan and its +-2 neighbours merged with the reference poses.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_slam.config import ScanContextConfig, VerifyConfig
+from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.geometry import (
+    inverse,
+    make_pose,
+    relative,
+    rotation_angle_deg,
+    transform_points,
+    yaw_matrix,
+    yaw_rad,
+)
+from lidar_slam.io.pointcloud import read_cloud
+from lidar_slam.io.trajectory import read_kitti_poses
+from lidar_slam.loop.ground import level_ground
+from lidar_slam.loop.scan_context import align, describe, shift_to_yaw
+from lidar_slam.loop.verify import information_matrix, verify
+from lidar_slam.types import LoopCandidate
+
+TRUE_PAIRS = [(175, 108), (172, 109), (168, 113), (176, 114)]  # 2.2-4.1 m apart
+# Far apart in the reference, or places where ICP slides to a wrong pose 6-7 m off along the
+# hall with a plausible fitness (found by tools/loop_sweep.py).
+WRONG_PAIRS = [(150, 100), (130, 100), (162, 124), (163, 100), (162, 100), (138, 111),
+               (157, 129)]
+
+
+class Ouster:
+    def __init__(self, root: Path):
+        self.root = root
+        self.poses = read_kitti_poses(root / "poses.txt")
+        self._clouds: dict[int, np.ndarray] = {}
+
+    def cloud(self, frame: int) -> np.ndarray:
+        """Keyframe cloud in its sensor frame: range <= 60 m, 0.5 m voxels."""
+        if frame not in self._clouds:
+            pts = read_cloud(self.root / "scans" / f"{frame:06d}.bin").points
+            pts = pts[np.linalg.norm(pts, axis=1) <= 60.0]
+            self._clouds[frame] = voxel_downsample(pts, 0.5)[0]
+        return self._clouds[frame]
+
+    def pose(self, frame: int) -> np.ndarray:
+        return self.poses[frame - 100]
+
+    def submap(self, frame: int, radius: int = 2) -> np.ndarray:
+        """Scans frame-radius..frame+radius merged into frame's sensor frame."""
+        frames = range(max(100, frame - radius), min(176, frame + radius) + 1)
+        return np.vstack([transform_points(relative(self.pose(frame), self.pose(f)), self.cloud(f))
+                          for f in frames])
+
+    def T_match_query(self, query: int, match: int) -> np.ndarray:
+        return relative(self.pose(match), self.pose(query))
+
+    def errors(self, T: np.ndarray, query: int, match: int) -> tuple[float, float]:
+        d = inverse(self.T_match_query(query, match)) @ T
+        return float(np.linalg.norm(d[:3, 3])), float(rotation_angle_deg(d))
+
+    def levelled_yaw(self, query: int, match: int) -> float:
+        """Reference yaw of T_match_query about the fitted ground normals (as verify uses it)."""
+        L_q = make_pose(level_ground(self.cloud(query)).R_level_sensor, np.zeros(3))
+        L_m = make_pose(level_ground(self.submap(match)).R_level_sensor, np.zeros(3))
+        return yaw_rad(L_m @ self.T_match_query(query, match) @ inverse(L_q))
+
+
+@pytest.fixture(scope="module")
+def data() -> Ouster:
+    from conftest import shared_path
+
+    return Ouster(shared_path("ouster_os0_loop_balm"))
+
+
+def sc_candidate(data: Ouster, query: int, match: int) -> LoopCandidate:
+    """The candidate scan context would produce (its yaw guess is often off by ~90 deg here)."""
+    cfg = ScanContextConfig(max_radius_m=30.0)
+    dist, shift = align(describe(data.cloud(query), cfg), describe(data.cloud(match), cfg),
+                        cfg.local_search_sectors)
+    return LoopCandidate(query, match, dist, shift_to_yaw(shift, cfg.sectors))
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("query,match", TRUE_PAIRS)
+def test_true_loops_are_accepted_with_the_reference_relative_pose(data, query, match):
+    cfg = VerifyConfig()
+    res = verify(sc_candidate(data, query, match), data.cloud(query), data.submap(match), cfg)
+    assert res.accepted, res.reason
+    assert res.reason == ""
+    err_m, err_deg = data.errors(res.constraint.T_match_query, query, match)
+    assert err_m < 1.0 and err_deg < 5.0
+    assert res.fitness >= cfg.min_fitness and res.margin >= cfg.min_margin
+    c = res.constraint
+    assert (c.query, c.match) == (query, match)
+    info = c.information
+    assert info.shape == (6, 6)
+    np.testing.assert_allclose(info, info.T)
+    assert np.linalg.eigvalsh(info).min() > 0
+    assert not np.allclose(info / info[0, 0], np.eye(6))
+    std = np.sqrt(np.diag(np.linalg.inv(info)))
+    # Scaled so that the best-constrained direction sits exactly at one of the floors.
+    floor_r, floor_t = np.radians(cfg.info_min_rot_sigma_deg), cfg.info_min_trans_sigma_m
+    assert std[:3].min() >= floor_r * 0.999 and std[3:].min() >= floor_t * 0.999
+    assert np.isclose(std[:3].min(), floor_r, rtol=1e-3) or np.isclose(std[3:].min(), floor_t,
+                                                                        rtol=1e-3)
+    assert std[3:].max() < 0.5  # a real room constrains every translation
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("query,match", WRONG_PAIRS)
+def test_wrong_places_are_never_accepted_with_a_wrong_pose(data, query, match):
+    # No translation gate: fitness, margin and yaw gates alone must hold the line.
+    cfg = VerifyConfig(max_translation_m=100.0)
+    for yaw_guess in (sc_candidate(data, query, match).yaw_guess_rad, 0.0, np.radians(45.0)):
+        cand = LoopCandidate(query, match, 0.2, yaw_guess)
+        res = verify(cand, data.cloud(query), data.submap(match), cfg)
+        if res.accepted:
+            assert max(data.errors(res.T_match_query, query, match)) < 1.0, res
+        else:
+            assert res.constraint is None and res.reason
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("query,match", TRUE_PAIRS[:2])
+@pytest.mark.parametrize("offset_deg", [90.0, 180.0, 270.0])
+def test_a_yaw_guess_off_by_a_right_angle_is_corrected_or_rejected(data, query, match, offset_deg):
+    yaw = data.levelled_yaw(query, match) + np.radians(offset_deg)
+    cand = LoopCandidate(query, match, 0.2, yaw)
+    no_search = VerifyConfig(try_yaw_offsets=False)
+    single = verify(cand, data.cloud(query), data.submap(match), no_search)
+    if single.accepted:
+        err_m, err_deg = data.errors(single.T_match_query, query, match)
+        assert err_m < 1.0 and err_deg < 5.0
+    searched = verify(cand, data.cloud(query), data.submap(match), VerifyConfig())
+    assert searched.accepted, searched.reason
+    err_m, err_deg = data.errors(searched.T_match_query, query, match)
+    assert err_m < 1.0 and err_deg < 5.0
+    yaw_hyps = [h for h in searched.hypotheses if h.push_m == (0.0, 0.0)]
+    assert [h.offset_deg for h in yaw_hyps] == [0.0, 90.0, 180.0, 270.0]
+    assert len(searched.hypotheses) == 8  # and four basin probes around the winner
+    winner = max(yaw_hyps, key=lambda h: h.coarse_fitness)
+    assert winner.offset_deg == (360.0 - offset_deg) % 360.0
+
+
+@pytest.mark.shared_data
+def test_an_initial_pose_from_the_graph_is_used_instead_of_the_yaw_guess(data):
+    query, match = 176, 113
+    T_init = data.T_match_query(query, match) @ make_pose(np.eye(3), [0.6, -0.4, 0.0])
+    T_init = T_init @ yaw_matrix(np.radians(8.0))
+    cand = LoopCandidate(query, match, 0.2, 0.0)  # a useless yaw guess: the init must win
+    res = verify(cand, data.cloud(query), data.submap(match), VerifyConfig(), T_init)
+    assert res.accepted, res.reason
+    assert max(data.errors(res.constraint.T_match_query, query, match)) < 1.0
+
+
+def test_information_matrix_is_rotation_first_and_weak_along_a_corridor():
+    """Walls at y = +-2 m, floor and ceiling, 40 m along x: x translation is unobservable."""
+    rng = np.random.default_rng(0)
+    n = 2000
+    x = rng.uniform(-20, 20, (4, n))
+    t = rng.uniform(-1, 1, (4, n))
+    pts = np.vstack([
+        np.c_[x[0], np.full(n, 2.0), 1.5 * t[0]], np.c_[x[1], np.full(n, -2.0), 1.5 * t[1]],
+        np.c_[x[2], 2 * t[2], np.full(n, -1.5)], np.c_[x[3], 2 * t[3], np.full(n, 1.5)],
+    ])
+    normals = np.repeat(np.array([[0, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1]], float), n, axis=0)
+    corr = np.c_[np.arange(len(pts)), np.arange(len(pts))]
+    info = information_matrix(pts, pts, normals, corr, np.eye(4), 0.05, VerifyConfig())
+    # Order (rx, ry, rz, tx, ty, tz): tx (index 3) is free, ty and tz are strongly constrained.
+    assert info[3, 3] < 1e-9 * info[4, 4]
+    assert info[4, 4] > 0 and info[5, 5] > 0
+    # Rotation about x turns walls and floor alike: constrained, and it sits first.
+    assert info[0, 0] > 0.1 * info[5, 5]
+    np.testing.assert_allclose(info, info.T)

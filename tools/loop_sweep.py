@@ -1,0 +1,155 @@
+"""Loop detection + verification over a sequence with reference poses, as the pipeline would run
+them: keyframes chosen in order (KeyframeSelector on the reference poses, or every scan), each
+queried against the earlier non-recent ones, every candidate verified.
+
+Prints one row per candidate (scan-context distance, yaw guess, fitness, rmse, accepted/reason,
+and whether the verified pose is correct against the reference: within 1 m / 5 deg), then the
+time per query for detection and for verification (ms, wall and CPU: on a shared machine the CPU
+time is the fairer number; OMP_NUM_THREADS=1 keeps open3d on one thread), and a summary.
+
+Keyframe clouds are built like the pipeline's: range-cropped to map.max_range_m and voxelised at
+keyframes.cloud_voxel_m. The match cloud may be a submap of +-N neighbouring keyframes merged
+with the reference poses (the pipeline would use its odometry poses).
+
+Usage: python tools/loop_sweep.py [DATA] [--config FILE] [--set loop.scan_context.threshold=0.25]
+       [--every-scan] [--submap N] [--verify-top K] [--quiet]
+DATA defaults to ../shared/data/ouster_os0_loop_balm (scans/*.bin + poses.txt).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from lidar_slam.config import load_config
+from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.geometry import inverse, relative, rotation_angle_deg, transform_points, yaw_rad
+from lidar_slam.io.pointcloud import read_cloud
+from lidar_slam.io.trajectory import read_kitti_poses
+from lidar_slam.keyframes import KeyframeSelector
+from lidar_slam.loop.scan_context import ScanContextIndex
+from lidar_slam.loop.verify import verify
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO.parent / "shared" / "data" / "ouster_os0_loop_balm"
+
+
+def overrides(pairs: list[str]) -> dict:
+    """'a.b.c=value' strings to a nested dict (values parsed as YAML scalars)."""
+    out: dict = {}
+    for pair in pairs:
+        key, value = pair.split("=", 1)
+        node = out
+        *parents, leaf = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = yaml.safe_load(value)
+    return out
+
+
+def keyframe_cloud(path: Path, max_range_m: float, voxel_m: float) -> np.ndarray:
+    pts = read_cloud(path).points
+    pts = pts[np.linalg.norm(pts, axis=1) <= max_range_m]
+    return voxel_downsample(pts, voxel_m)[0]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("data", nargs="?", default=str(DEFAULT_DATA))
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--set", action="append", default=[], help="config override a.b=value")
+    ap.add_argument("--every-scan", action="store_true", help="every scan is a keyframe")
+    ap.add_argument("--submap", type=int, default=None,
+                    help="match submap +-N keyframes (default loop.verify.submap_radius)")
+    ap.add_argument("--query-submap", type=int, default=None,
+                    help="query cloud = the keyframe and its N predecessors, as LoopCloser does "
+                         "(default loop.verify.submap_radius; 0 = the keyframe alone)")
+    ap.add_argument("--verify-top", type=int, default=3, help="verify at most K candidates/query")
+    ap.add_argument("--quiet", action="store_true", help="summary only")
+    ap.add_argument("--csv", default=None, help="also write every candidate row to this CSV")
+    args = ap.parse_args()
+
+    cfg = load_config(args.config, overrides(args.set))
+    sc_cfg, v_cfg = cfg.loop.scan_context, cfg.loop.verify
+    submap = v_cfg.submap_radius if args.submap is None else args.submap
+    q_submap = v_cfg.submap_radius if args.query_submap is None else args.query_submap
+    data = Path(args.data)
+    files = sorted((data / "scans").glob("*.bin"))
+    poses = read_kitti_poses(data / "poses.txt")
+    selector = KeyframeSelector(cfg.keyframes)
+    kf_scan = [i for i, T in enumerate(poses) if args.every_scan or selector.is_keyframe(T)]
+    print(f"{len(kf_scan)} keyframes of {len(files)} scans; scan context {sc_cfg.rings}x"
+          f"{sc_cfg.sectors} r={sc_cfg.max_radius_m} m thr={sc_cfg.threshold} exclude_recent="
+          f"{sc_cfg.exclude_recent} level={sc_cfg.level_to_ground}; verify {v_cfg.method} "
+          f"voxel={v_cfg.voxel_m} min_fitness={v_cfg.min_fitness} min_margin={v_cfg.min_margin}; "
+          f"match submap +-{submap} kf, query submap -{q_submap} kf; keyframe voxel "
+          f"{cfg.keyframes.cloud_voxel_m} m")
+    clouds = [keyframe_cloud(files[i], cfg.map.max_range_m, cfg.keyframes.cloud_voxel_m)
+              for i in kf_scan]
+
+    def submap_cloud(k: int, before: int, after: int) -> np.ndarray:
+        parts = []
+        for j in range(max(0, k - before), min(len(kf_scan), k + after + 1)):
+            T_k_j = relative(poses[kf_scan[k]], poses[kf_scan[j]])
+            parts.append(transform_points(T_k_j, clouds[j]))
+        return np.vstack(parts)
+
+    index = ScanContextIndex(sc_cfg)
+    t_detect, t_verify, cpu_verify, rows = [], [], [], []
+    if not args.quiet:
+        print(" query match  dist  yaw_g  yaw_ref  ref_d_m  fitness  rmse   margin  result  "
+              "vs_ref  err_m  err_deg  verify_ms  reason")
+    for k, i in enumerate(kf_scan):
+        t0 = time.perf_counter()
+        res = index.query(k, clouds[k])
+        index.add(k, clouds[k])
+        t_detect.append((time.perf_counter() - t0) * 1e3)
+        for cand in res.candidates[: args.verify_top]:
+            m = cand.match
+            source, target = submap_cloud(k, q_submap, 0), submap_cloud(m, submap, submap)
+            t1, c1 = time.perf_counter(), time.process_time()
+            v = verify(cand, source, target, v_cfg)
+            t_verify.append((time.perf_counter() - t1) * 1e3)
+            cpu_verify.append((time.process_time() - c1) * 1e3)
+            T_ref = relative(poses[kf_scan[m]], poses[i])
+            d = inverse(T_ref) @ v.T_match_query
+            err_m, err_deg = float(np.linalg.norm(d[:3, 3])), float(rotation_angle_deg(d))
+            correct = err_m < 1.0 and err_deg < 5.0
+            rows.append((v.accepted, correct, float(np.linalg.norm(T_ref[:3, 3])), i, kf_scan[m],
+                         cand.score, v.fitness, v.rmse_m, v.margin, err_m, err_deg, v.reason))
+            if not args.quiet:
+                name = lambda n: files[n].stem  # noqa: E731
+                print(f"{name(i)} {name(kf_scan[m])} {cand.score:5.3f} "
+                      f"{np.degrees(cand.yaw_guess_rad):6.0f} {np.degrees(yaw_rad(T_ref)):7.0f} "
+                      f"{np.linalg.norm(T_ref[:3, 3]):7.1f} {v.fitness:8.2f} {v.rmse_m:6.3f} "
+                      f"{v.margin:7.2f}  {'ACCEPT' if v.accepted else 'reject'}  "
+                      f"{'correct' if correct else 'WRONG  '} {err_m:6.2f} {err_deg:7.1f} "
+                      f"{t_verify[-1]:9.0f}  {v.reason}")
+        if not args.quiet and not res.candidates and res.best_match is not None:
+            print(f"{files[i].stem}   (best rejected: kf scan {files[kf_scan[res.best_match]].stem}"
+                  f" distance {res.best_distance:.3f})")
+
+    if args.csv:
+        with open(args.csv, "w") as fh:
+            fh.write("accepted,correct,ref_dist_m,query,match,sc_dist,fitness,rmse_m,margin,"
+                     "err_m,err_deg,reason\n")
+            for r in rows:
+                fh.write(",".join(str(x) for x in r[:11]) + f",\"{r[11]}\"\n")
+    acc = [r for r in rows if r[0]]
+    print(f"candidates {len(rows)}: accepted {len(acc)} (correct {sum(r[1] for r in acc)}, "
+          f"WRONG {sum(not r[1] for r in acc)}); rejected {len(rows) - len(acc)} (of which the "
+          f"ICP pose was correct: {sum(r[1] for r in rows if not r[0])})")
+    for name, t in (("detection per query (wall)", t_detect),
+                    ("verification per candidate (wall)", t_verify),
+                    ("verification per candidate (CPU, all threads)", cpu_verify)):
+        if t:
+            print(f"{name}: mean {np.mean(t):.1f} ms, median {np.median(t):.1f} ms, "
+                  f"max {np.max(t):.1f} ms (n={len(t)})")
+
+
+if __name__ == "__main__":
+    main()
