@@ -11,15 +11,11 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
 
 from lidar_slam.errors import LidarSlamError
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                   help="Lidar SLAM: odometry, loop closure, pose graph, map and metrics.")
-console = Console(stderr=True)
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
@@ -50,18 +46,48 @@ def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logg
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
 
 
-def _summary_table(summary: dict) -> Table:
-    table = Table(title="lidar-slam run", show_header=True)
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
-    units = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m": "m",
-             "rpe_trans_m_mean": "m", "rpe_rot_deg_mean": "deg", "end_drift_pct": "%",
-             "ate_rmse_m": "m", "odometry_ate_rmse_m": "m", "odometry_ms_per_frame": "ms",
-             "loops_ms_per_frame": "ms"}
+UNITS = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m": "m",
+         "map_points": "points", "rpe_trans_m_mean": "m", "rpe_rot_deg_mean": "deg",
+         "end_drift_pct": "%", "ate_rmse_m": "m", "odometry_ate_rmse_m": "m",
+         "odometry_ms_per_frame": "ms", "loops_ms_per_frame": "ms"}
+
+
+def _summary_table(summary: dict) -> str:
+    """The run summary as an aligned two-column table, every number with its unit."""
+    rows = []
     for key, value in summary.items():
         text = f"{value:.4g}" if isinstance(value, float) else str(value)
-        table.add_row(key, f"{text} {units.get(key, '')}".strip())
-    return table
+        rows.append((key, f"{text} {UNITS.get(key, '')}".strip()))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+class _Progress:
+    """A rich progress bar with frames/s on a terminal; silent otherwise (rich not imported)."""
+
+    def __init__(self, name: str, total: int):
+        self.bar = None
+        self.t0 = time.perf_counter()
+        if sys.stderr.isatty():
+            from rich.console import Console
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                                       TimeElapsedColumn)
+
+            self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                                MofNCompleteColumn(), TextColumn("{task.fields[fps]:.1f} frames/s"),
+                                TimeElapsedColumn(), console=Console(stderr=True))
+            self.task = self.bar.add_task(name, total=total, fps=0.0)
+            self.bar.start()
+
+    def tick(self, _scan=None) -> None:
+        if self.bar is not None:
+            done = self.bar.tasks[0].completed + 1
+            fps = done / max(time.perf_counter() - self.t0, 1e-9)
+            self.bar.update(self.task, advance=1, fps=fps)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
 
 
 @app.command()
@@ -101,22 +127,17 @@ def run(
 
         visualizer = RerunViz(spawn=viz, rrd_path=rrd)
     t0 = time.perf_counter()
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TextColumn("{task.fields[fps]:.1f} frames/s"), TimeElapsedColumn())
-    with Progress(*columns, console=console, transient=False, disable=not console.is_terminal
-                  and not sys.stderr.isatty()) as bar:
-        task = bar.add_task(source.name, total=total, fps=0.0)
-
-        def tick(_scan) -> None:
-            done = bar.tasks[0].completed + 1
-            bar.update(task, advance=1, fps=done / max(time.perf_counter() - t0, 1e-9))
-
-        result = pipeline.run(source.scans(start, total), cfg, on_scan=tick, viz=visualizer)
+    progress = _Progress(source.name, total)
+    try:
+        result = pipeline.run(source.scans(start, total), cfg, on_scan=progress.tick,
+                              viz=visualizer)
+    finally:
+        progress.close()
     summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
                         extra={"input": str(data), "start": start})
     if visualizer is not None:
         visualizer.finish(result)
-    Console().print(_summary_table(summary))
+    typer.echo(_summary_table(summary))
     typer.echo(f"wrote {out}")
     if result.error:
         raise _fail(f"{result.error} (stopped there; frames so far written to {out})")

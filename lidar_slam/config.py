@@ -35,7 +35,7 @@ class OdometryConfig(_Section):
 
 
 class KeyframeConfig(_Section):
-    distance_m: float = 1.0
+    distance_m: float = 2.0
     rotation_deg: float = 15.0
     cloud_voxel_m: float = 0.5
 

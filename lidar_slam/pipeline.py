@@ -122,7 +122,8 @@ class Pipeline:
         r = self.result
         near = np.linalg.norm(points, axis=1) <= self.cfg.map.max_range_m
         inten = scan.intensity[keep][near] if scan.intensity is not None else None
-        pts, inten = voxel_downsample(points[near], self.cfg.keyframes.cloud_voxel_m, inten)
+        pts, inten = voxel_downsample(points[near], self.cfg.keyframes.cloud_voxel_m, inten,
+                                      reduce="first")
         kf = Keyframe(len(r.keyframes), scan.index, T_world_scan, pts.astype(np.float32),
                       None if inten is None else inten.astype(np.float32))
         r.keyframes.append(kf)

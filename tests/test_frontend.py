@@ -49,3 +49,15 @@ def test_voxel_downsample_leaves_one_point_per_occupied_voxel():
     pts = np.random.default_rng(2).uniform(0, 10, (50000, 3))
     out, _ = voxel_downsample(pts, 1.0)
     assert len(out) == 1000
+
+
+def test_first_point_reduction_keeps_one_input_point_per_voxel():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 10, (20000, 3))
+    inten = rng.uniform(0, 1, 20000)
+    out, out_i = voxel_downsample(pts, 1.0, inten, reduce="first")
+    assert len(out) == 1000
+    assert len(np.unique(np.floor(out), axis=0)) == 1000  # one per voxel
+    rows = {tuple(p): i for i, p in enumerate(pts)}
+    idx = [rows[tuple(p)] for p in out]  # every kept point is an input point ...
+    np.testing.assert_array_equal(out_i, inten[idx])  # ... with its own intensity

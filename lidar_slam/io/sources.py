@@ -7,12 +7,12 @@ Every source yields `Scan`s with 0-based `index` = position in the input, and ex
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
-from natsort import natsorted
 
 from lidar_slam.errors import InputError
 from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, read_bin, read_cloud
@@ -50,9 +50,14 @@ def make_scan(index: int, stamp_s: float, cloud: CloudData, source: str) -> Scan
     return Scan(index, float(stamp_s), cloud.points[finite], times, inten, source)
 
 
+def natural_key(name: str) -> list:
+    """Sort key that orders scan2 before scan10."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
 def _scan_files(folder: Path) -> list[Path]:
     files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES]
-    return natsorted(files, key=lambda p: p.name)
+    return sorted(files, key=lambda p: natural_key(p.name))
 
 
 def _load_stamps(path: Path, n: int) -> np.ndarray:
@@ -111,7 +116,7 @@ class KittiSource:
     def __init__(self, root: Path, vertical_correction: bool = False):
         self.root = root
         self.name = root.name
-        self.files = natsorted((root / "velodyne").glob("*.bin"), key=lambda p: p.name)
+        self.files = sorted((root / "velodyne").glob("*.bin"), key=lambda p: natural_key(p.name))
         if not self.files:
             raise InputError(root / "velodyne", "no .bin scans found")
         self.vertical_correction = vertical_correction
