@@ -33,6 +33,8 @@ EXPONENT = 2.5
 OVERLAP_M = 12.0
 MAX_SPEED_MPS = 11.0
 MAX_LATERAL_ACC_MPS2 = 5.0
+START_SPEED_MPS = 0.5
+START_ACC_MPS2 = 2.5
 
 
 def loop_trajectory() -> tuple[np.ndarray, np.ndarray]:
@@ -55,6 +57,8 @@ def loop_trajectory() -> tuple[np.ndarray, np.ndarray]:
     x, y = np.r_[x, x[extra][1:]], np.r_[y, y[extra][1:]]
     heading = np.r_[heading, heading[extra][1:] + 2 * np.pi]
     speed = np.r_[speed, speed[extra][1:]]
+    # Start from (nearly) rest, as a real drive does, accelerating at START_ACC_MPS2.
+    speed = np.minimum(speed, np.sqrt(START_SPEED_MPS**2 + 2 * START_ACC_MPS2 * arc))
     t = np.r_[0.0, np.cumsum(np.diff(arc) / (0.5 * (speed[1:] + speed[:-1])))]
     stamps = np.arange(0.0, t[-1], 1.0 / RATE_HZ)
     xs, ys = np.interp(stamps, t, x), np.interp(stamps, t, y)
@@ -76,7 +80,8 @@ Made by `python tools/make_sample_scans.py` (deterministic: seed {seed}); see
   reduced from the real 0.1-0.4 deg to keep the folder small), {rate:g} Hz sweeps, max range
   {rng:g} m, range noise {noise:g} cm, random and grazing-angle dropouts.
 - Trajectory: a closed circuit of {perimeter:.0f} m (superellipse {a:g} x {b:g} m semi-axes),
-  driven counter-clockwise at up to {vmax:g} m/s, slowing in the bends; the car goes once round and
+  driven counter-clockwise from rest (accelerating at {acc:g} m/s^2) at up to {vmax:g} m/s, slowing
+  in the bends; the car goes once round and
   {overlap:g} m on, so scans {revisit} revisit the start region (scans 0..) in the same direction.
   {n} scans, {length:.0f} m in {dur:.1f} s.
 - World: a procedural street lining the circuit on both sides (facades with irregular outlines
@@ -121,7 +126,7 @@ def main() -> None:
     (out / "README.md").write_text(README.format(
         seed=SEED, n_az=SENSOR.n_azimuth, res=360 / SENSOR.n_azimuth, rate=SENSOR.rate_hz,
         rng=SENSOR.max_range_m, noise=SENSOR.range_noise_m * 100, perimeter=perim, a=a, b=b,
-        vmax=MAX_SPEED_MPS, overlap=OVERLAP_M, n=summary.n_scans, length=length,
+        vmax=MAX_SPEED_MPS, acc=START_ACC_MPS2, overlap=OVERLAP_M, n=summary.n_scans, length=length,
         dur=summary.stamps_s[-1] - summary.stamps_s[0],
         revisit=f"{revisit[0]}..{revisit[-1]}" if revisit else "(none)"))
     (out / "README.txt").unlink(missing_ok=True)
