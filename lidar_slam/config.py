@@ -74,8 +74,12 @@ class VerifyConfig(_Section):
     probe_shift_m: float = 4.0
     # Fine stage at voxel_m.
     max_correspondence_m: float = 0.6
+    # Query points used (a fixed random subset beyond this; 0 = all) in the coarse / fine stage.
+    coarse_max_points: int = 500
+    fine_max_points: int = 4000
     min_fitness: float = 0.5
-    max_rmse_m: float = 0.3
+    # RMSE of the inliers (so at most inlier_m): a loose guard; ~0.19 m for true loops here.
+    max_rmse_m: float = 0.25
     # ICP may turn at most this far from the yaw hypothesis it started at (the yaw guess plus a
     # multiple of 90 deg): a guess a few sectors off must still pass, a slide must not.
     max_yaw_disagreement_deg: float = 30.0

@@ -6,8 +6,9 @@ Descriptor yaw guesses in rectangular rooms are often off by a multiple of 90 de
 reverse revisits), and ICP started there settles on a wrong pose whose fitness still looks
 plausible. So every start yaw_guess + k * 90 deg is aligned on coarse clouds (large
 correspondence distances pull in the metres between revisits), the hypotheses are ranked by
-coarse fitness, the winner must beat the best *different* solution by a margin, and only the
-winner is refined on the fine clouds. open3d (legacy pipelines) does the ICP.
+coarse fitness, the winner's basin is probed by restarts pushed a few metres sideways (halls and
+corridors repeat every bay), the winner must beat the best *different* solution by a margin, and
+only the winner is refined on the fine clouds. open3d (legacy pipelines) does the ICP.
 """
 
 from __future__ import annotations
@@ -62,10 +63,15 @@ class VerificationResult:
     hypotheses: tuple[Hypothesis, ...] = ()
 
 
-def _cloud(points: np.ndarray, voxel_m: float, normals: bool):
-    """Voxel-downsampled open3d cloud, with normals when it is an ICP target."""
+def _cloud(points: np.ndarray, voxel_m: float, normals: bool, max_points: int = 0):
+    """Voxel-downsampled open3d cloud, at most max_points of them (a fixed random subset; 0: no
+    cap; ICP time grows with the source size), with normals when it is an ICP target."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     pcd = pcd.voxel_down_sample(voxel_m)
+    n = len(pcd.points)
+    if 0 < max_points < n:
+        keep = np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))
+        pcd = pcd.select_by_index(keep.tolist())
     if normals:
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
     return pcd
@@ -81,6 +87,31 @@ def _icp(src, tgt, T0: np.ndarray, max_corr_m: float, cfg: VerifyConfig) -> np.n
         est = reg.TransformationEstimationPointToPlane()
         result = reg.registration_icp(src, tgt, max_corr_m, T0, est, criteria)
     return np.asarray(result.transformation)
+
+
+def _coarse_align(src_c, tgt_c, T0: np.ndarray, cfg: VerifyConfig) -> tuple[np.ndarray, float]:
+    """Coarse ICP from T0 (full, then half the coarse correspondence distance); (T, fitness)."""
+    T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
+    T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
+    return T, reg.evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
+
+
+def _failed_gates(fitness: float, rmse: float, margin: float | None, turned_deg: float,
+                  T: np.ndarray, cfg: VerifyConfig) -> list[str]:
+    """Why a refined alignment is not trusted (empty: accepted); margin None = not measured."""
+    fails = []
+    if fitness < cfg.min_fitness:
+        fails.append(f"fitness {fitness:.2f} < {cfg.min_fitness:.2f}")
+    if rmse > cfg.max_rmse_m:
+        fails.append(f"rmse {rmse:.3f} m > {cfg.max_rmse_m:.3f} m")
+    if margin is not None and margin < cfg.min_margin:
+        fails.append(f"ambiguous: margin {margin:.2f} < {cfg.min_margin:.2f}")
+    if turned_deg > cfg.max_yaw_disagreement_deg:
+        fails.append(f"ICP turned {turned_deg:.0f} deg from its start")
+    t_m = float(np.linalg.norm(T[:3, 3]))
+    if t_m > cfg.max_translation_m:
+        fails.append(f"translation {t_m:.1f} m > {cfg.max_translation_m} m")
+    return fails
 
 
 def information_matrix(src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np.ndarray,
@@ -122,8 +153,9 @@ def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.
     the candidate's yaw guess about both clouds' ground normals (see scan_context's convention).
     """
     gicp = cfg.method == "gicp"
-    src, tgt = _cloud(query_points, cfg.voxel_m, gicp), _cloud(match_points, cfg.voxel_m, True)
-    src_c = _cloud(np.asarray(src.points), cfg.coarse_voxel_m, gicp)
+    src = _cloud(query_points, cfg.voxel_m, gicp, cfg.fine_max_points)
+    tgt = _cloud(match_points, cfg.voxel_m, True)
+    src_c = _cloud(query_points, cfg.coarse_voxel_m, gicp, cfg.coarse_max_points)
     tgt_c = _cloud(np.asarray(tgt.points), cfg.coarse_voxel_m, True)
     if min(len(src_c.points), len(tgt_c.points)) < 10:
         return VerificationResult(False, "too few points", 0.0, np.inf, candidate.yaw_guess_rad,
@@ -142,45 +174,27 @@ def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.
     hyps = []
     for off in (0.0, 90.0, 180.0, 270.0) if cfg.try_yaw_offsets else (0.0,):
         T0 = inverse(L_m) @ yaw_matrix(np.radians(off)) @ L_m @ T_match_query_init
-        T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
-        T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
-        fit = reg.evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
+        T, fit = _coarse_align(src_c, tgt_c, T0, cfg)
         hyps.append(Hypothesis(off, T, fit, levelled_yaw(T0), levelled_yaw(T)))
-    # Probe the winner's basin: restarts pushed a few metres sideways (repetitive halls and
-    # corridors have a second minimum one bay along) must not find a rival as good as it.
-    if cfg.probe_shift_m > 0:
-        top = max(hyps, key=lambda h: h.coarse_fitness)
-        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            push = (cfg.probe_shift_m * dx, cfg.probe_shift_m * dy)
-            T0 = inverse(L_m) @ make_pose(np.eye(3), [*push, 0.0]) @ L_m @ top.T_match_query
-            T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
-            T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
-            fit = reg.evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
-            hyps.append(Hypothesis(top.offset_deg, T, fit, top.yaw_start_rad, levelled_yaw(T),
-                                   push))
+    # 2. Probe the winner's basin: restarts pushed a few metres sideways (repetitive halls and
+    # corridors have a second minimum one bay along) compete with it like other hypotheses.
+    top = max(hyps, key=lambda h: h.coarse_fitness)
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)) if cfg.probe_shift_m > 0 else ():
+        push = (cfg.probe_shift_m * dx, cfg.probe_shift_m * dy)
+        T0 = inverse(L_m) @ make_pose(np.eye(3), [*push, 0.0]) @ L_m @ top.T_match_query
+        T, fit = _coarse_align(src_c, tgt_c, T0, cfg)
+        hyps.append(Hypothesis(top.offset_deg, T, fit, top.yaw_start_rad, levelled_yaw(T), push))
     best = max(hyps, key=lambda h: h.coarse_fitness)
     rivals = [h.coarse_fitness for h in hyps if _distinct(h.T_match_query, best.T_match_query)]
     margin = best.coarse_fitness - max(rivals, default=0.0)
 
-    # 2. Refine the winner on the fine clouds and score it there.
+    # 3. Refine the winner on the fine clouds, score it there, and gate.
     T = _icp(src, tgt, best.T_match_query, cfg.max_correspondence_m, cfg)
     ev = reg.evaluate_registration(src, tgt, cfg.inlier_m, T)
     fitness, rmse = ev.fitness, (ev.inlier_rmse if ev.fitness > 0 else np.inf)
     yaw_icp = levelled_yaw(T)
-
-    # 3. Gates.
-    fails = []
-    if fitness < cfg.min_fitness:
-        fails.append(f"fitness {fitness:.2f} < {cfg.min_fitness:.2f}")
-    if rmse > cfg.max_rmse_m:
-        fails.append(f"rmse {rmse:.3f} m > {cfg.max_rmse_m:.3f} m")
-    if len(hyps) > 1 and margin < cfg.min_margin:
-        fails.append(f"ambiguous: margin {margin:.2f} < {cfg.min_margin:.2f}")
     turned = abs(np.degrees(_wrap(yaw_icp - best.yaw_start_rad)))
-    if turned > cfg.max_yaw_disagreement_deg:
-        fails.append(f"ICP turned {turned:.0f} deg from its start")
-    if np.linalg.norm(T[:3, 3]) > cfg.max_translation_m:
-        fails.append(f"translation {np.linalg.norm(T[:3, 3]):.1f} m > {cfg.max_translation_m} m")
+    fails = _failed_gates(fitness, rmse, margin if len(hyps) > 1 else None, turned, T, cfg)
     reason = "; ".join(fails)
 
     constraint = None
