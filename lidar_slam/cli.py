@@ -197,5 +197,45 @@ def eval_cmd(
         typer.echo(f"wrote {out}")
 
 
+class Sensor(str, Enum):
+    hdl64 = "hdl64"
+    vlp16 = "vlp16"
+    os1_64 = "os1-64"
+
+
+@app.command()
+@reports_errors
+def simulate(
+    poses: Path = typer.Argument(..., help="KITTI pose file (left-camera frame, as poses/XX.txt)."),
+    calib: Path = typer.Option(..., "--calib", help="KITTI calib with Tr (velodyne -> cam0)."),
+    out: Path = typer.Option(..., "--out", "-o", help="KITTI-layout sequence folder to write."),
+    times: Optional[Path] = typer.Option(None, "--times", help="Stamps (s); default: "
+                                         "../times/<name>.txt beside POSES, else 10 Hz."),
+    sensor: Sensor = typer.Option(Sensor.hdl64, "--sensor"),
+    start: int = typer.Option(0, "--start", min=0),
+    n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Ray-cast a lidar along a real trajectory through a procedural street world."""
+    import numpy as np
+
+    from lidar_slam.io.trajectory import (camera_to_lidar_poses, read_kitti_calib_tr,
+                                          read_kitti_poses, read_times)
+    from lidar_slam.simulate import simulate_sequence
+
+    Tr = read_kitti_calib_tr(calib)
+    poses_lidar = camera_to_lidar_poses(read_kitti_poses(poses), Tr)
+    times = times or poses.parent.parent / "times" / poses.name
+    stamps = read_times(times) if times.is_file() else np.arange(len(poses_lidar)) * 0.1
+    if len(stamps) != len(poses_lidar):
+        raise _fail(f"{times}: {len(stamps)} stamps for {len(poses_lidar)} poses")
+    if start >= len(poses_lidar):
+        raise _fail(f"{poses}: --start {start} is past the last pose ({len(poses_lidar)})")
+    summary = simulate_sequence(poses_lidar, stamps, out, sensor=sensor.value, seed=seed,
+                                start=start, n_scans=n_scans, Tr_cam_lidar=Tr)
+    typer.echo(f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
+               f"{summary.seconds_per_scan:.3f} s/scan) into {out}")
+
+
 if __name__ == "__main__":
     app()

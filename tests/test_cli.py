@@ -154,3 +154,35 @@ def test_start_and_n_scans(tmp_path, kitti16):
     np.testing.assert_allclose(stamps, np.loadtxt(kitti16 / "times.txt")[4:10], atol=1e-6)
     assert_one_line_error(lidar_slam("run", kitti16, "--out", tmp_path / "p", "--start", 99),
                           "--start 99")
+
+
+def test_simulate_then_run_round_trip(tmp_path, kitti_gt):
+    out = tmp_path / "sim"
+    proc = lidar_slam("simulate", kitti_gt / "poses" / "07.txt", "--calib",
+                      kitti_gt / "calib" / "07.txt", "--out", out, "--n-scans", "6",
+                      "--sensor", "vlp16")
+    assert proc.returncode == 0, proc.stderr
+    run = lidar_slam("run", out, "--out", tmp_path / "run", "--no-loops")
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["frames"] == 6 and summary["rpe_trans_m_mean"] < 0.3
+
+
+def test_optimize_and_eval_bad_input(tmp_path):
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("EDGE_SE2 0 1 nope\n")
+    assert_one_line_error(lidar_slam("optimize", bad, "--out", tmp_path / "o.g2o"), "bad.g2o")
+    est = tmp_path / "est.txt"
+    est.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
+    gt = tmp_path / "gt.txt"
+    gt.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 4)
+    assert_one_line_error(lidar_slam("eval", est, gt), "est.txt")
+
+
+def test_optimize_prints_errors(tmp_path, posegraphs):
+    proc = lidar_slam("optimize", posegraphs / "se-sync" / "intel.g2o", "--out", tmp_path / "o.g2o")
+    assert proc.returncode == 0, proc.stderr
+    lines = dict(ln.split("=", 1) for ln in proc.stdout.splitlines() if ln.startswith(("initial_",
+                                                                                         "final_")))
+    assert abs(float(lines["final_error"]) - 22.50) / 22.50 < 0.01
+    assert float(lines["initial_error"]) > float(lines["final_error"])
