@@ -16,7 +16,7 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.errors import LidarSlamError
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import deskew
-from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.frontend.downsample import voxel_first_indices
 from lidar_slam.geometry import interpolate, inverse, transform_points
 from lidar_slam.keyframes import KeyframeSelector
 from lidar_slam.odometry import Odometry
@@ -73,57 +73,58 @@ class Pipeline:
     def process(self, scan: Scan) -> None:
         """Run one scan through every stage."""
         r, t0 = self.result, time.perf_counter()
-        keep = range_mask(scan.points, self.cfg.data.min_range_m, self.cfg.data.max_range_m)
-        points = scan.points[keep]
         if self._last_stamp is not None and scan.stamp_s > self._last_stamp:
             dt = scan.stamp_s - self._last_stamp
         else:
             dt = self._last_dt
-        if len(points) == 0:
-            log.warning("%s: empty scan after cropping, skipped (pose predicted)", scan.source)
-            r.skipped_empty += 1
-            T_world_scan = self.odometry.predict()
-            self._append(scan, T_world_scan)
-            return
-        ref_s = 0.0
-        if self.cfg.data.deskew and scan.point_times is not None:
+        points, ref_s = scan.points, 0.0
+        if self.cfg.data.deskew and scan.point_times is not None and len(points):
             # Deskew (once) to the middle of the sweep: the correction, and with it the effect of
             # a wrong velocity guess, is half what deskewing to an end of the sweep gives; that
             # feedback makes start-referenced deskew diverge on fast sparse scans.
-            times = scan.point_times[keep]
+            times = scan.point_times
             ref_s = 0.5 * (float(times.min()) + float(times.max()))
             points = deskew(points, times - ref_s, self.odometry.last_delta, self._last_dt)
-        T_world_ref = self.odometry.step(points)
-        T_world_scan = T_world_ref
+        T_world_ref = self.odometry.step(points)  # range-cropped inside, as kiss-icp does
+        if T_world_ref is None:
+            log.warning("%s: empty scan after cropping, skipped (pose predicted)", scan.source)
+            r.skipped_empty += 1
+            self._append(scan, self.odometry.predict())
+            return
+        T_ref_stamp = np.eye(4)
         if ref_s != 0.0:  # the pose (and the cloud) refer to the stamp, not the mid-sweep
             T_ref_stamp = interpolate(np.eye(4), self.odometry.last_delta, -ref_s / dt)
-            T_world_scan = T_world_ref @ T_ref_stamp
-            points = transform_points(inverse(T_ref_stamp), points)
+        T_world_scan = T_world_ref @ T_ref_stamp
         self._last_dt, self._last_stamp = dt, scan.stamp_s
         r.seconds["odometry"] += time.perf_counter() - t0
         is_kf = self.keyframes.is_keyframe(T_world_scan)
         if is_kf:
-            self._add_keyframe(scan, points, keep, T_world_scan)
+            self._add_keyframe(scan, points, T_ref_stamp, T_world_scan)
         self._append(scan, T_world_scan)
         if self.viz is not None:
-            self.viz.log_scan(self, scan, points, T_world_scan, is_kf)
+            keep = range_mask(points, self.cfg.data.min_range_m, self.cfg.data.max_range_m)
+            self.viz.log_scan(self, scan, transform_points(inverse(T_ref_stamp), points[keep]),
+                              T_world_scan, is_kf)
 
     def _append(self, scan: Scan, T_world_scan: np.ndarray) -> None:
         r = self.result
         if not r.keyframes:  # an empty first scan still needs a keyframe to hang off
-            self._add_keyframe(scan, np.zeros((0, 3)), np.zeros(len(scan.points), bool), T_world_scan)
+            self._add_keyframe(scan, np.zeros((0, 3)), np.eye(4), T_world_scan)
         r.indices.append(scan.index)
         r.stamps_s.append(scan.stamp_s)
         r.odom_poses.append(T_world_scan)
         r.frame_kf.append(r.keyframes[-1].id)
 
-    def _add_keyframe(self, scan: Scan, points: np.ndarray, keep: np.ndarray,
+    def _add_keyframe(self, scan: Scan, points: np.ndarray, T_ref_stamp: np.ndarray,
                       T_world_scan: np.ndarray) -> None:
+        """Keyframe cloud: points (deskewed, in the odometry's reference frame) within the map
+        range, one per voxel, moved to the stamp frame, with their intensity."""
         r = self.result
-        near = np.linalg.norm(points, axis=1) <= self.cfg.map.max_range_m
-        inten = scan.intensity[keep][near] if scan.intensity is not None else None
-        pts, inten = voxel_downsample(points[near], self.cfg.keyframes.cloud_voxel_m, inten,
-                                      reduce="first")
+        max_range_m = min(self.cfg.data.max_range_m, self.cfg.map.max_range_m)
+        near = np.flatnonzero(range_mask(points, self.cfg.data.min_range_m, max_range_m))
+        idx = near[voxel_first_indices(points[near], self.cfg.keyframes.cloud_voxel_m)]
+        pts = transform_points(inverse(T_ref_stamp), points[idx])
+        inten = scan.intensity[idx] if scan.intensity is not None else None
         kf = Keyframe(len(r.keyframes), scan.index, T_world_scan, pts.astype(np.float32),
                       None if inten is None else inten.astype(np.float32))
         r.keyframes.append(kf)

@@ -38,7 +38,7 @@ def test_folder_without_scans(tmp_path):
 
 
 def test_bin_of_wrong_size_names_the_file(tmp_path):
-    np.zeros((10, 4), np.float32).tofile(tmp_path / "000000.bin")
+    np.random.default_rng(0).uniform(-9, 9, (500, 4)).astype(np.float32).tofile(tmp_path / "000000.bin")
     (tmp_path / "000001.bin").write_bytes(b"\0" * 30)
     proc = lidar_slam("run", tmp_path, "--out", tmp_path / "o", "--no-loops")
     assert_one_line_error(proc, "000001.bin", "not a multiple of 16")

@@ -28,15 +28,14 @@ def test_deskew_lowers_per_frame_error_on_distorted_scans():
 
 
 def test_kiss_icp_never_deskews_a_second_time():
-    # Our front-end deskews; the odometry never touches kiss-icp's preprocessing, which would
-    # deskew again when given timestamps (its Preprocessor is not even constructed).
-    import inspect
+    # Our front-end deskews; kiss-icp's preprocessor (used for its range crop) must leave the
+    # points where they are, even with a large motion estimate and per-point times at hand.
+    from kiss_icp.pybind import kiss_icp_pybind as kp
 
-    from lidar_slam import odometry
-
-    src = inspect.getsource(odometry)
-    assert "_Preprocessor" not in src and "preprocess(" not in src
     odo = Odometry(load_config())
     pts = np.random.default_rng(0).uniform(-20, 20, (5000, 3))
-    odo.step(pts)
-    assert not hasattr(odo, "preprocessor")
+    motion = np.eye(4)
+    motion[0, 3] = 2.0
+    for times in (np.zeros(0), np.linspace(0, 1, len(pts))):
+        out = np.asarray(odo._crop._preprocess(kp._Vector3dVector(pts), times, motion))
+        np.testing.assert_array_equal(out, pts)  # all in range: nothing moved, nothing dropped
