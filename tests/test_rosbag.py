@@ -327,3 +327,51 @@ def test_decode_empty_cloud():
     msg = _cloud_msg(_rec(np.zeros((0, 3)), step=16))
     cloud = decode_pointcloud2(msg)
     assert cloud.points.shape == (0, 3) and cloud.n_dropped == 0
+
+
+def _cli_one_line_error(path, *extra):
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(path), "--out",
+                           str(Path(str(path)).parent / "out"), "--no-loops", *extra],
+                          capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert str(path) in lines[0]
+    return lines[0]
+
+
+def test_rosbag_errors_through_the_cli(rosbags_dir, tmp_path):
+    assert "PointCloud2" in _cli_one_line_error(rosbags_dir / "evo_samples" / "ROS_example.bag")
+    msg = _cloud_msg(_rec(_points()), store=ROS1)
+    two = _write_ros1_bag(tmp_path / "two.bag", {"/front": [msg], "/rear": [msg]})
+    assert "--topic" in _cli_one_line_error(two)
+    src = rosbags_dir / "converted_by_rosbags" / CONVERTED[0]
+    cut = tmp_path / "cut" / src.name
+    cut.parent.mkdir()
+    cut.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    _cli_one_line_error(cut)
+    rec = np.zeros(4, dtype=[("a", "<f4"), ("b", "<f4"), ("c", "<f4")])
+    noxyz = tmp_path / "noxyz"
+    with Writer2(noxyz, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/cloud", PC2, typestore=ROS2)
+        writer.write(conn, STAMP_NS, ROS2.serialize_cdr(_cloud_msg(rec), PC2))
+    assert "x, y, z" in _cli_one_line_error(noxyz)
+
+
+def test_rosbag_containers_give_identical_runs(rosbags_dir, tmp_path):
+    """`lidar-slam run` on each container of the same real cloud gives the same pose and map."""
+    import subprocess
+    import sys
+
+    outs = []
+    for i, rel in enumerate([MCAP1, "converted_by_rosbags/" + CONVERTED[0]]
+                            + ["converted_by_rosbags/" + c for c in CONVERTED[1:]]):
+        out = tmp_path / f"o{i}"
+        proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run",
+                               str(rosbags_dir / rel), "--out", str(out), "--no-loops",
+                               "--n-scans", "1"], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        outs.append((out / "map.ply").read_bytes())
+    assert all(o == outs[0] for o in outs)
