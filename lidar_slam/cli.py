@@ -36,6 +36,9 @@ def reports_errors(fn):
             raise _fail(str(exc)) from None
         except KeyboardInterrupt:
             raise _fail("interrupted", EXIT_INTERRUPTED) from None
+        except OSError as exc:  # e.g. an output path that cannot be created or written
+            where = exc.filename if exc.filename is not None else "output"
+            raise _fail(f"{where}: {exc.strerror or exc}") from None
 
     return wrapper
 
@@ -116,6 +119,7 @@ def run(
     if no_deskew:
         overrides["data"] = {"deskew": False}
     cfg = load_config(config, overrides)
+    out.mkdir(parents=True, exist_ok=True)  # fail before the run, not after it
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction)
     if start >= len(source):

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
+from lidar_slam.errors import InputError
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import transform_points
 
@@ -24,7 +25,11 @@ class RerunViz:
     def __init__(self, spawn: bool = False, rrd_path: str | Path | None = None):
         self.rec = rr.RecordingStream("lidar_slam")
         if rrd_path is not None:
-            self.rec.save(str(rrd_path))
+            try:
+                Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
+                self.rec.save(str(rrd_path))
+            except (OSError, RuntimeError) as exc:  # rerun reports an unwritable path this way
+                raise InputError(rrd_path, f"cannot write the recording ({exc})") from exc
         if spawn:
             self.rec.spawn()
         self._n_loops = 0

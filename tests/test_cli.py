@@ -186,3 +186,12 @@ def test_optimize_prints_errors(tmp_path, posegraphs):
                                                                                          "final_")))
     assert abs(float(lines["final_error"]) - 22.50) / 22.50 < 0.01
     assert float(lines["initial_error"]) > float(lines["final_error"])
+
+
+def test_unwritable_outputs_are_one_line(tmp_path, kitti16):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert_one_line_error(lidar_slam("run", kitti16, "--out", blocker / "run", "--n-scans", 2,
+                                     "--no-loops"), "file")
+    assert_one_line_error(lidar_slam("run", kitti16, "--out", tmp_path / "ok", "--n-scans", 2,
+                                     "--no-loops", "--rrd", blocker / "x.rrd"), "x.rrd")
