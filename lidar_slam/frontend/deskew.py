@@ -19,15 +19,16 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarra
     """Points (N,3) captured at point_times_s, expressed in the sensor frame at the scan stamp."""
     if period_s <= 0:
         return points
-    s = (point_times_s / period_s)[:, None]
+    s = point_times_s * (1.0 / period_s)
     rotvec = rotvec_from_matrix(T_prev_curr[:3, :3])
     theta = float(np.linalg.norm(rotvec))
-    out = points
+    out = points + np.outer(s, T_prev_curr[:3, 3])
     if theta > 1e-12:
+        # Rodrigues about the motion's fixed axis k: R(a) p = p + sin(a) K p + (1 - cos(a)) K^2 p,
+        # with K p and K^2 p as two (N,3) x (3,3) products (BLAS) instead of cross products.
         k = rotvec / theta
+        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
         ang = s * theta
-        c, sn = np.cos(ang), np.sin(ang)
-        kxp = np.cross(k, points)
-        kdp = points @ k
-        out = points * c + kxp * sn + np.outer(kdp, k) * (1.0 - c)
-    return out + s * T_prev_curr[:3, 3]
+        out += np.sin(ang)[:, None] * (points @ K.T)
+        out += (1.0 - np.cos(ang))[:, None] * (points @ (K @ K).T)
+    return out
