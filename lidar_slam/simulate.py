@@ -62,6 +62,10 @@ class SensorModel:
     range_noise_m: float = 0.015
     dropout: float = 0.02
     mount_height_m: float = 1.73
+    # Intrinsic calibration error: the lasers really point this much higher than the nominal
+    # elevations the points are computed with (KITTI's HDL-64E has ~0.2 deg: kiss-icp's
+    # `correct_kitti_scan` undoes 0.205 deg). Makes drift as real as the sensor's.
+    elevation_error_deg: float = 0.0
 
     @property
     def period_s(self) -> float:
@@ -72,10 +76,10 @@ class SensorModel:
         """(A,) capture time of each azimuth column, seconds after the sweep start."""
         return np.arange(self.n_azimuth) * (self.period_s / self.n_azimuth)
 
-    def directions(self) -> np.ndarray:
+    def directions(self, elevation_offset_deg: float = 0.0) -> np.ndarray:
         """(A, B, 3) unit beam directions in the sensor frame, column by column in firing order."""
         az = np.pi - 2.0 * np.pi * np.arange(self.n_azimuth) / self.n_azimuth
-        el = np.radians(np.asarray(self.elevations_deg))
+        el = np.radians(np.asarray(self.elevations_deg) + elevation_offset_deg)
         ce = np.cos(el)[None, :]
         return np.stack(
             [ce * np.cos(az)[:, None], ce * np.sin(az)[:, None], np.broadcast_to(
@@ -91,7 +95,8 @@ def _hdl64_elevations() -> tuple[float, ...]:
 
 SENSORS: dict[str, SensorModel] = {
     "hdl64": SensorModel("hdl64", _hdl64_elevations(), n_azimuth=2000, rate_hz=10.0,
-                         max_range_m=120.0, range_noise_m=0.015, mount_height_m=1.73),
+                         max_range_m=120.0, range_noise_m=0.015, mount_height_m=1.73,
+                         elevation_error_deg=0.2),
     "vlp16": SensorModel("vlp16", tuple(np.linspace(-15.0, 15.0, 16)), n_azimuth=1800,
                          rate_hz=10.0, max_range_m=100.0, range_noise_m=0.02,
                          mount_height_m=1.8),
@@ -594,8 +599,9 @@ def simulate_scan(world: World, sensor: SensorModel, poses_at, stamp_s: float, r
     """Cast one sweep starting at stamp_s; poses_at(times) -> T_world_lidar (N, 4, 4)."""
     tau = sensor.column_times_s()
     T = poses_at(stamp_s + tau)  # (A, 4, 4) the sensor pose at each column's capture time
-    d_loc = sensor.directions()  # (A, B, 3)
-    d_world = np.einsum("aij,abj->abi", T[:, :3, :3], d_loc).reshape(-1, 3)
+    d_loc = sensor.directions()  # (A, B, 3) nominal: what the points are computed with
+    d_true = sensor.directions(sensor.elevation_error_deg) if sensor.elevation_error_deg else d_loc
+    d_world = np.einsum("aij,abj->abi", T[:, :3, :3], d_true).reshape(-1, 3)
     n_b = d_loc.shape[1]
     o_world = np.repeat(T[:, :3, 3], n_b, axis=0)
     hit = world.cast(o_world, d_world)

@@ -198,3 +198,23 @@ def test_simulate_loads_kitti_truth(kitti_gt):
     # Lidar frame: x forward, so the heading follows the direction of travel.
     step = gt.poses_world_lidar[60, :3, 3] - gt.poses_world_lidar[40, :3, 3]
     assert step @ gt.poses_world_lidar[50, :3, 0] > 0.95 * np.linalg.norm(step)
+
+
+def test_simulate_elevation_error_biases_points_like_kittis_lasers():
+    # The lasers point elevation_error_deg higher than the nominal elevations the points are
+    # computed with: ground returns then come back farther away and too low, as on real KITTI.
+    import dataclasses
+
+    from lidar_slam.simulate import SENSORS
+
+    assert SENSORS["hdl64"].elevation_error_deg == pytest.approx(0.2)
+    stamps, poses = straight(3, speed_mps=0.0)
+    base = dataclasses.replace(SENSORS["vlp16"], n_azimuth=360, range_noise_m=0.0, dropout=0.0)
+    world = build_world(poses, base, seed=3)
+    sim = place_on_terrain(poses, world.terrain, base.mount_height_m)
+    at = PoseInterpolator(stamps, sim)
+    exact = simulate_scan(world, base, at, stamps[0], np.random.default_rng(0))
+    tilted = simulate_scan(world, dataclasses.replace(base, elevation_error_deg=0.5), at,
+                           stamps[0], np.random.default_rng(0))
+    ground = lambda s: s.points[(s.points[:, 2] < -1.0) & (np.hypot(*s.points[:, :2].T) < 15)]
+    assert np.median(ground(tilted)[:, 2]) < np.median(ground(exact)[:, 2]) - 0.02
