@@ -123,7 +123,9 @@ class Pipeline:
         max_range_m = min(self.cfg.data.max_range_m, self.cfg.map.max_range_m)
         near = np.flatnonzero(range_mask(points, self.cfg.data.min_range_m, max_range_m))
         idx = near[voxel_first_indices(points[near], self.cfg.keyframes.cloud_voxel_m)]
-        pts = transform_points(inverse(T_ref_stamp), points[idx])
+        pts = points[idx]
+        if not np.array_equal(T_ref_stamp, np.eye(4)):  # deskewed to mid-sweep: move to stamp
+            pts = transform_points(inverse(T_ref_stamp), pts)
         inten = scan.intensity[idx] if scan.intensity is not None else None
         kf = Keyframe(len(r.keyframes), scan.index, T_world_scan, pts.astype(np.float32),
                       None if inten is None else inten.astype(np.float32))
