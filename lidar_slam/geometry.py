@@ -113,11 +113,6 @@ def from_xyz_quat(v: np.ndarray) -> np.ndarray:
     return make_pose(matrix_from_quat(v[3:7]), v[:3])
 
 
-def log_se3(T: np.ndarray) -> np.ndarray:
-    """Twist (rho, phi) of a pose: translation part first, rotation vector second (decoupled)."""
-    return np.r_[T[:3, 3], rotvec_from_matrix(T[:3, :3])]
-
-
 def interpolate(T_a: np.ndarray, T_b: np.ndarray, s: float) -> np.ndarray:
     """Pose at fraction s between T_a and T_b (slerp on rotation, lerp on translation)."""
     dR = rotvec_from_matrix(T_a[:3, :3].T @ T_b[:3, :3])

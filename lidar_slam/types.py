@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,16 +22,6 @@ class Scan:
     point_times: np.ndarray | None = None
     intensity: np.ndarray | None = None
     source: str = ""
-
-
-@dataclass(frozen=True)
-class OdometryResult:
-    """Odometry output for one scan: T_world_scan and the downsampled cloud (scan frame) it used."""
-
-    index: int
-    T_world_scan: np.ndarray
-    points_scan: np.ndarray
-    intensity: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -65,15 +55,3 @@ class LoopConstraint:
     information: np.ndarray
     fitness: float
     rmse_m: float
-
-
-@dataclass
-class Trajectory:
-    """Poses T_world_sensor (K, 4, 4) with stamps (K,) in seconds."""
-
-    poses: np.ndarray
-    stamps_s: np.ndarray
-    extra: dict = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.poses)

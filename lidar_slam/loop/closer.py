@@ -99,10 +99,6 @@ class LoopCloser:
         self.index.add(kf.id, query_pts)
         return records
 
-    def odometry_T(self, kf_id: int) -> np.ndarray:
-        """T_world_kf from odometry alone."""
-        return self.keyframes[kf_id].T_world_kf_odom
-
 
 def loops_csv_rows(records: list[LoopRecord]) -> list[list]:
     """loops.csv rows (header first)."""
