@@ -143,6 +143,10 @@ def run(
         visualizer.finish(result)
     typer.echo(_summary_table(summary))
     typer.echo(f"wrote {out}")
+    if result.internal_error:
+        (out / "error_traceback.txt").write_text(result.internal_error)
+        raise _fail(f"internal error (traceback in {out / 'error_traceback.txt'}); the "
+                    f"{summary['frames']} frames so far written to {out}", 1)
     if result.error:
         raise _fail(f"{result.error} (stopped there; frames so far written to {out})")
     if result.interrupted:

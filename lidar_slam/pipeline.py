@@ -1,5 +1,5 @@
 """The SLAM pipeline in flow order:
-reader -> crop -> deskew -> odometry -> keyframe? -> scan-context query -> ICP verify -> pose graph
+reader -> deskew -> crop + odometry -> keyframe? -> scan-context query -> ICP verify -> pose graph
 -> map / metrics.
 """
 
@@ -39,6 +39,7 @@ class RunResult:
     skipped_empty: int = 0
     interrupted: bool = False
     error: str | None = None  # a bad input that stopped the run early
+    internal_error: str | None = None  # traceback of a bug that stopped the run early
     graph: object | None = None  # the keyframe PoseGraph when loops are on (for graph.g2o)
     seconds: dict[str, float] = field(default_factory=lambda: {"odometry": 0.0, "loops": 0.0})
 
@@ -152,4 +153,9 @@ def run(scans: Iterable[Scan], cfg: SlamConfig, on_scan: Callable[[Scan], None] 
         pipe.result.interrupted = True
     except LidarSlamError as exc:
         pipe.result.error = str(exc)
+    except Exception:  # a bug must not cost the frames already computed: keep them, report it
+        import traceback
+
+        pipe.result.internal_error = traceback.format_exc()
+        log.error("internal error after %d frames", len(pipe.result.indices))
     return pipe.result

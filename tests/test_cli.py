@@ -195,3 +195,23 @@ def test_unwritable_outputs_are_one_line(tmp_path, kitti16):
                                      "--no-loops"), "file")
     assert_one_line_error(lidar_slam("run", kitti16, "--out", tmp_path / "ok", "--n-scans", 2,
                                      "--no-loops", "--rrd", blocker / "x.rrd"), "x.rrd")
+
+
+def test_a_bug_mid_run_keeps_the_frames_so_far(tmp_path, kitti16, monkeypatch):
+    from lidar_slam import pipeline
+    from lidar_slam.config import load_config
+    from lidar_slam.io.sources import open_source
+
+    src = open_source(kitti16)
+    calls = {"n": 0}
+    real = pipeline.Pipeline.process
+
+    def flaky(self, scan):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise ZeroDivisionError("a bug")
+        return real(self, scan)
+
+    monkeypatch.setattr(pipeline.Pipeline, "process", flaky)
+    result = pipeline.run(src.scans(0, 8), load_config(overrides={"loop": {"enabled": False}}))
+    assert len(result.indices) == 3 and "ZeroDivisionError" in result.internal_error
