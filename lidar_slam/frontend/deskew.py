@@ -22,13 +22,19 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarra
     s = point_times_s * (1.0 / period_s)
     rotvec = rotvec_from_matrix(T_prev_curr[:3, :3])
     theta = float(np.linalg.norm(rotvec))
-    out = points + np.outer(s, T_prev_curr[:3, 3])
+    out = s[:, None] * T_prev_curr[:3, 3]
+    out += points
     if theta > 1e-12:
         # Rodrigues about the motion's fixed axis k: R(a) p = p + sin(a) K p + (1 - cos(a)) K^2 p,
-        # with K p and K^2 p as two (N,3) x (3,3) products (BLAS) instead of cross products.
+        # as (N,3) x (3,3) products into one reused buffer (fresh temporaries cost page faults).
         k = rotvec / theta
         K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
         ang = s * theta
-        out += np.sin(ang)[:, None] * (points @ K.T)
-        out += (1.0 - np.cos(ang))[:, None] * (points @ (K @ K).T)
+        tmp = np.empty_like(out)
+        np.matmul(points, K.T, out=tmp)
+        tmp *= np.sin(ang)[:, None]
+        out += tmp
+        np.matmul(points, (K @ K).T, out=tmp)
+        tmp *= (1.0 - np.cos(ang))[:, None]
+        out += tmp
     return out
