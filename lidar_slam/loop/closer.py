@@ -85,7 +85,7 @@ class LoopCloser:
             query_cloud = self.submap(kf.id, self.cfg.loop.verify.submap_radius)
             res = verify(cand, query_cloud, self.submap(cand.match, self.cfg.loop.verify.submap_radius),
                          self.cfg.loop.verify)
-            T = res.constraint.T_match_query if res.constraint is not None else None
+            T = res.T_match_query  # the refined winner, logged for rejected candidates too
             records.append(LoopRecord(kf.frame_index, match.frame_index, kf.id, match.id,
                                       cand.score, float(np.degrees(cand.yaw_guess_rad)), res.fitness,
                                       res.rmse_m, res.accepted, res.reason, T))
