@@ -39,3 +39,16 @@ def test_kiss_icp_never_deskews_a_second_time():
     for times in (np.zeros(0), np.linspace(0, 1, len(pts))):
         out = np.asarray(odo._crop._preprocess(kp._Vector3dVector(pts), times, motion))
         np.testing.assert_array_equal(out, pts)  # all in range: nothing moved, nothing dropped
+
+
+def test_heavy_libraries_load_only_when_needed():
+    """open3d (~1.3 s), scipy.spatial (~0.4 s) and gtsam load on the first loop candidate,
+    ring-key tree and optimisation, not at start-up: short runs and `--no-loops` skip them."""
+    import subprocess
+    import sys
+
+    code = ("import sys, lidar_slam.cli, lidar_slam.pipeline, lidar_slam.loop.closer, "
+            "lidar_slam.outputs\n"
+            "print(sorted(m for m in ('open3d', 'gtsam', 'scipy.spatial') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.backend import gtsam_graph
 from lidar_slam.backend.factors import (
     BetweenFactor,
     Dims,
@@ -100,6 +99,8 @@ class PoseGraph:
     def optimize(self, max_iterations: int = 100) -> dict[int, np.ndarray]:
         """Levenberg-Marquardt from the current estimate; returns the new T_world_node per key."""
         self._check_keys()
+        from lidar_slam.backend import gtsam_graph  # gtsam: imported when first needed
+
         res = gtsam_graph.solve(self.dims, self.priors, self.edges, self._estimate, max_iterations)
         self._estimate = res.poses
         self.summary = OptimizeSummary(res.initial_error, res.final_error, res.iterations,
@@ -114,6 +115,8 @@ class PoseGraph:
         if poses is None:
             self._check_keys()
             poses = self._estimate
+        from lidar_slam.backend import gtsam_graph
+
         return gtsam_graph.graph_error(self.dims, self.priors, self.edges, poses)
 
     def to_g2o(self) -> G2oGraph:

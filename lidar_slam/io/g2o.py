@@ -16,9 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from lidar_slam.errors import InputError
+from lidar_slam.geometry import matrix_from_quat, quat_from_matrix
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def _se3_matrix(v: np.ndarray, path: Path, lineno: int) -> np.ndarray:
     if not norm > 1e-9:
         raise InputError(path, f"line {lineno}: quaternion has zero norm")
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, :3] = matrix_from_quat(q / norm)
     T[:3, 3] = v[:3]
     return T
 
@@ -252,7 +252,7 @@ def write_g2o(path: str | Path, graph: G2oGraph) -> None:
                          f"{_fmt(e.information[iu])}")
     else:
         def xyz_quat(T: np.ndarray) -> np.ndarray:
-            return np.r_[T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()]
+            return np.r_[T[:3, 3], quat_from_matrix(T[:3, :3])]
 
         for k in keys:
             lines.append(f"VERTEX_SE3:QUAT {k} {_fmt(xyz_quat(graph.poses[k]))}")

@@ -13,7 +13,6 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lidar_slam.config import ScanContextConfig
 from lidar_slam.geometry import make_pose
@@ -111,7 +110,7 @@ class ScanContextIndex:
         self._ids: list[int] = []
         self._desc: list[Descriptor] = []
         self._by_id: dict[int, Descriptor] = {}
-        self._tree: cKDTree | None = None
+        self._tree = None  # scipy cKDTree, imported on first build (~0.4 s)
         self._n_tree = 0
         self._last: tuple[int, Descriptor] | None = None
 
@@ -134,6 +133,8 @@ class ScanContextIndex:
         self._desc.append(desc)
         self._by_id[kf_id] = desc
         if len(self._ids) - self._n_tree >= self.cfg.tree_rebuild_every:
+            from scipy.spatial import cKDTree
+
             self._tree = cKDTree(np.stack([d.ring_key for d in self._desc]))
             self._n_tree = len(self._ids)
 

@@ -21,11 +21,20 @@ import numpy as np
 from lidar_slam.config import VerifyConfig
 from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg, yaw_matrix, yaw_rad
 from lidar_slam.loop.ground import level_ground
-from lidar_slam.o3d import o3d
 from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
-reg = o3d.pipelines.registration
+
+
+def _o3d():
+    """open3d, imported on the first verification (its import costs ~1.3 s of a short run)."""
+    from lidar_slam.o3d import o3d
+
+    return o3d
+
+
+def _reg():
+    return _o3d().pipelines.registration
 
 # Two converged poses closer than this are the same solution (for the margin gate).
 _SAME_ROT_DEG = 10.0
@@ -66,6 +75,7 @@ class VerificationResult:
 def _cloud(points: np.ndarray, voxel_m: float, normals: bool, max_points: int = 0):
     """Voxel-downsampled open3d cloud, at most max_points of them (a fixed random subset; 0: no
     cap; ICP time grows with the source size), with normals when it is an ICP target."""
+    o3d = _o3d()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     pcd = pcd.voxel_down_sample(voxel_m)
     n = len(pcd.points)
@@ -79,6 +89,7 @@ def _cloud(points: np.ndarray, voxel_m: float, normals: bool, max_points: int = 
 
 def _icp(src, tgt, T0: np.ndarray, max_corr_m: float, cfg: VerifyConfig) -> np.ndarray:
     """One ICP run query -> match from T0; returns T_match_query."""
+    reg = _reg()
     criteria = reg.ICPConvergenceCriteria(1e-5, 1e-5, cfg.max_iterations)
     if cfg.method == "gicp":
         est = reg.TransformationEstimationForGeneralizedICP()
@@ -93,7 +104,7 @@ def _coarse_align(src_c, tgt_c, T0: np.ndarray, cfg: VerifyConfig) -> tuple[np.n
     """Coarse ICP from T0 (full, then half the coarse correspondence distance); (T, fitness)."""
     T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
     T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
-    return T, reg.evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
+    return T, _reg().evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
 
 
 def _failed_gates(fitness: float, rmse: float, margin: float | None, turned_deg: float,
@@ -190,7 +201,7 @@ def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.
 
     # 3. Refine the winner on the fine clouds, score it there, and gate.
     T = _icp(src, tgt, best.T_match_query, cfg.max_correspondence_m, cfg)
-    ev = reg.evaluate_registration(src, tgt, cfg.inlier_m, T)
+    ev = _reg().evaluate_registration(src, tgt, cfg.inlier_m, T)
     fitness, rmse = ev.fitness, (ev.inlier_rmse if ev.fitness > 0 else np.inf)
     yaw_icp = levelled_yaw(T)
     turned = abs(np.degrees(_wrap(yaw_icp - best.yaw_start_rad)))
