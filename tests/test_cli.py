@@ -215,3 +215,11 @@ def test_a_bug_mid_run_keeps_the_frames_so_far(tmp_path, kitti16, monkeypatch):
     monkeypatch.setattr(pipeline.Pipeline, "process", flaky)
     result = pipeline.run(src.scans(0, 8), load_config(overrides={"loop": {"enabled": False}}))
     assert len(result.indices) == 3 and "ZeroDivisionError" in result.internal_error
+
+
+def test_eval_empty_pose_file_is_one_line(tmp_path):
+    empty = tmp_path / "est.txt"
+    empty.write_text("")
+    gt = tmp_path / "gt.txt"
+    gt.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    assert_one_line_error(lidar_slam("eval", empty, gt), "est.txt", "empty")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +11,21 @@ from lidar_slam.errors import InputError
 from lidar_slam.geometry import matrix_from_quat, quat_from_matrix
 
 
+def _loadtxt(path: Path, **kwargs) -> np.ndarray:
+    """np.loadtxt without its "input contained no data" warning: an empty file is reported as one
+    error line by the caller, not a warning plus an error."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return np.loadtxt(path, **kwargs)
+
+
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     """(K, 4, 4) poses from a KITTI pose file (row-major 3x4 per line)."""
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "pose file does not exist")
     try:
-        data = np.loadtxt(p, ndmin=2)
+        data = _loadtxt(p, ndmin=2)
     except ValueError as exc:
         raise InputError(p, f"not a KITTI pose file ({exc})") from exc
     if data.size == 0:
@@ -40,7 +49,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not p.is_file():
         raise InputError(p, "pose file does not exist")
     try:
-        data = np.loadtxt(p, ndmin=2, comments="#")
+        data = _loadtxt(p, ndmin=2, comments="#")
     except ValueError as exc:
         raise InputError(p, f"not a TUM pose file ({exc})") from exc
     if data.size == 0 or data.shape[1] != 8:
@@ -85,6 +94,6 @@ def read_times(path: str | Path) -> np.ndarray:
     """One stamp (s) per line."""
     p = Path(path)
     try:
-        return np.atleast_1d(np.loadtxt(p, ndmin=1))
+        return np.atleast_1d(_loadtxt(p, ndmin=1))
     except (ValueError, OSError) as exc:
         raise InputError(p, f"unreadable times file ({exc})") from exc
