@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import signal
 import sys
 import time
 from enum import Enum
@@ -65,6 +67,49 @@ def _summary_table(summary: dict) -> str:
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
 
 
+class _SigtermAsInterrupt:
+    """While active, SIGTERM (kill, timeout, docker stop, a batch scheduler) stops the run the way
+    Ctrl-C does: the frames computed so far are kept and written. deferred(): a SIGTERM is only
+    noted, so the outputs being written are finished first."""
+
+    def __init__(self):
+        self.received = False
+        self._old = None
+
+    def _raise(self, signum, frame):
+        self.received = True
+        raise KeyboardInterrupt
+
+    def _note(self, signum, frame):
+        self.received = True
+
+    def _install(self, handler) -> None:
+        try:
+            self._old = signal.signal(signal.SIGTERM, handler)
+        except ValueError:  # not the main thread (embedded use): leave signals alone
+            self._old = None
+
+    def _restore(self) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
+            self._old = None
+
+    def __enter__(self):
+        self._install(self._raise)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
+
+    @contextlib.contextmanager
+    def deferred(self):
+        self._install(self._note)
+        try:
+            yield
+        finally:
+            self._restore()
+
+
 class _Progress:
     """A rich progress bar with frames/s on a terminal; silent otherwise (rich not imported)."""
 
@@ -111,7 +156,7 @@ def run(
     from lidar_slam import pipeline
     from lidar_slam.config import load_config
     from lidar_slam.io.sources import open_source
-    from lidar_slam.outputs import write_run
+    from lidar_slam.outputs import OdometryStream, write_run
 
     overrides: dict = {}
     if no_loops:
@@ -132,13 +177,24 @@ def run(
         visualizer = RerunViz(spawn=viz, rrd_path=rrd)
     t0 = time.perf_counter()
     progress = _Progress(source.name, total)
+    stream = OdometryStream(out)
+
+    def on_scan(scan, result) -> None:
+        progress.tick(scan)
+        stream.append(result.odom_poses[-1])
+
+    terminated = _SigtermAsInterrupt()
     try:
-        result = pipeline.run(source.scans(start, total), cfg, on_scan=progress.tick,
-                              viz=visualizer)
+        with terminated:
+            result = pipeline.run(source.scans(start, total), cfg, on_scan=on_scan,
+                                  viz=visualizer)
     finally:
         progress.close()
-    summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
-                        extra={"input": str(data), "start": start})
+        stream.close()
+    with terminated.deferred():  # a SIGTERM now waits until the outputs are written
+        summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
+                            extra={"input": str(data), "start": start})
+    result.interrupted = result.interrupted or terminated.received
     if visualizer is not None:
         visualizer.finish(result)
     typer.echo(_summary_table(summary))

@@ -58,6 +58,22 @@ def write_loops(out_dir: Path, result: RunResult) -> dict:
             "loops_accepted": sum(1 for r in result.loops if r.accepted)}
 
 
+class OdometryStream:
+    """odometry_kitti.txt written while the run goes, one line per frame (line-buffered: every
+    line reaches the file as one write), so even a killed run (SIGKILL, out of memory) keeps its
+    odometry. write_run rewrites the file from the result at the end, with the same content."""
+
+    def __init__(self, out_dir: Path):
+        self.path = out_dir / "odometry_kitti.txt"
+        self._fh = open(self.path, "w", buffering=1)
+
+    def append(self, T_world_scan: np.ndarray) -> None:
+        self._fh.write(" ".join(f"{v:.9e}" for v in T_world_scan[:3, :4].ravel()) + "\n")
+
+    def close(self) -> None:
+        self._fh.close()
+
+
 def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: np.ndarray | None,
               wall_s: float, extra: dict | None = None) -> dict:
     """Write every output file; return the summary (also written as summary.json)."""

@@ -139,15 +139,15 @@ class Pipeline:
             r.seconds["loops"] += time.perf_counter() - t0
 
 
-def run(scans: Iterable[Scan], cfg: SlamConfig, on_scan: Callable[[Scan], None] | None = None,
-        viz=None) -> RunResult:
+def run(scans: Iterable[Scan], cfg: SlamConfig,
+        on_scan: Callable[[Scan, RunResult], None] | None = None, viz=None) -> RunResult:
     """Process scans in order; Ctrl-C stops early and keeps everything computed so far."""
     pipe = Pipeline(cfg, viz)
     try:
         for scan in scans:
             pipe.process(scan)
             if on_scan is not None:
-                on_scan(scan)
+                on_scan(scan, pipe.result)
     except KeyboardInterrupt:
         log.warning("interrupted: keeping the %d frames processed so far", len(pipe.result.indices))
         pipe.result.interrupted = True

@@ -113,6 +113,51 @@ def test_sigint_writes_partial_outputs(tmp_path, kitti16):
     assert 1 <= len(poses) <= 16
 
 
+def test_sigterm_writes_partial_outputs(tmp_path, ouster_loop):
+    """SIGTERM (kill, timeout, docker stop) keeps what was computed, like Ctrl-C."""
+    import signal
+    import time
+
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(ouster_loop),
+                             "--out", str(out), "--no-loops"], stderr=subprocess.PIPE, text=True)
+    odo = out / "odometry_kitti.txt"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if odo.is_file() and len(odo.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert "Traceback" not in err
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    poses = read_kitti_poses(out / "poses_kitti.txt")
+    assert 3 <= len(poses) < 77
+    assert json.loads((out / "summary.json").read_text())["interrupted"] is True
+
+
+def test_killed_run_keeps_its_odometry(tmp_path, ouster_loop):
+    """Even SIGKILL (no handler can run) leaves the odometry computed so far, line by line."""
+    import signal
+    import time
+
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(ouster_loop),
+                             "--out", str(out), "--no-loops"], stderr=subprocess.DEVNULL)
+    odo = out / "odometry_kitti.txt"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if odo.is_file() and len(odo.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    poses = read_kitti_poses(odo)
+    assert 3 <= len(poses) < 77
+    assert np.allclose(poses[0], np.eye(4))
+
+
 def test_run_on_kitti_writes_everything(tmp_path, kitti16):
     out = tmp_path / "run"
     proc = lidar_slam("run", kitti16, "--out", out)
