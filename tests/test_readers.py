@@ -82,6 +82,10 @@ def test_kitti_vertical_correction_matches_kiss_icp():
     pts, _ = _cloud(500)
     ref = np.asarray(kp._correct_kitti_scan(kp._Vector3dVector(pts)))
     np.testing.assert_allclose(correct_kitti_scan(pts), ref, atol=1e-9)
+    # A point on the sensor's z axis has no rotation axis: like kiss-icp, only scaled by cos.
+    on_axis = np.array([[0.0, 0.0, 3.0]])
+    ref_axis = np.asarray(kp._correct_kitti_scan(kp._Vector3dVector(on_axis)))
+    np.testing.assert_allclose(correct_kitti_scan(on_axis), ref_axis, atol=1e-9)
 
 
 def test_folder_with_scans_subfolder_and_reference_poses(ouster_loop):
