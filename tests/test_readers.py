@@ -125,3 +125,21 @@ def test_empty_pcd_is_an_empty_cloud_not_an_error(tmp_path):
                                      b"TYPE F F F\nCOUNT 1 1 1\nWIDTH 0\nHEIGHT 1\n"
                                      b"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 0\nDATA ascii\n")
     assert len(read_cloud(tmp_path / "e.pcd").points) == 0
+
+
+def test_make_scan_drops_exactly_the_non_finite_rows():
+    from lidar_slam.io.pointcloud import CloudData
+    from lidar_slam.io.sources import make_scan
+
+    pts = np.random.default_rng(1).uniform(-50, 50, (100, 3))
+    pts[3] = [np.inf, -np.inf, 0.0]  # sums to NaN
+    pts[7, 2] = np.nan
+    pts[9] = [1e308, 1e308, 0.0]  # finite, but its sum overflows: kept
+    times, inten = np.linspace(0, 0.1, 100), np.arange(100, dtype=np.float32)
+    scan = make_scan(0, 1.0, CloudData(pts, times, inten), "x")
+    keep = np.setdiff1d(np.arange(100), [3, 7])
+    np.testing.assert_array_equal(scan.points, pts[keep])
+    np.testing.assert_array_equal(scan.point_times, times[keep])
+    np.testing.assert_array_equal(scan.intensity, inten[keep])
+    clean = make_scan(0, 1.0, CloudData(pts[keep], None, None), "x")
+    assert clean.points is not None and len(clean.points) == 98

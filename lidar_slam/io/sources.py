@@ -39,15 +39,18 @@ class ScanSource(Protocol):
 
 def make_scan(index: int, stamp_s: float, cloud: CloudData, source: str) -> Scan:
     """Build a Scan, dropping points with NaN/inf coordinates (counted in the log)."""
-    finite = np.isfinite(cloud.points).all(axis=1)
-    dropped = int((~finite).sum())
-    if dropped:
-        log.warning("%s: dropped %d points with NaN/inf coordinates", source, dropped)
-    times = cloud.times[finite] if cloud.times is not None else None
+    points, times, inten = cloud.points, cloud.times, cloud.intensity
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: NaN, no warning
+        suspect = not np.isfinite(points.sum(axis=1)).all()  # a NaN/inf makes its row sum one
+    finite = np.isfinite(points).all(axis=1) if suspect else None
+    if finite is not None and not finite.all():  # (an overflowing finite sum lands here too)
+        log.warning("%s: dropped %d points with NaN/inf coordinates", source, int((~finite).sum()))
+        points = points[finite]
+        times = times[finite] if times is not None else None
+        inten = inten[finite] if inten is not None else None
     if times is not None and not np.isfinite(times).all():
         times = None
-    inten = cloud.intensity[finite] if cloud.intensity is not None else None
-    return Scan(index, float(stamp_s), cloud.points[finite], times, inten, source)
+    return Scan(index, float(stamp_s), points, times, inten, source)
 
 
 def natural_key(name: str) -> list:
