@@ -132,7 +132,7 @@ class Pipeline:
                       None if inten is None else inten.astype(np.float32))
         r.keyframes.append(kf)
         r.kf_poses[kf.id] = T_world_scan
-        if self.loop_closer is not None and len(pts):
+        if self.loop_closer is not None:  # empty clouds too: the graph needs every keyframe
             t0 = time.perf_counter()
             r.loops.extend(self.loop_closer.add_keyframe(kf))
             r.kf_poses.update(self.loop_closer.kf_poses())

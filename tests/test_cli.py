@@ -76,6 +76,19 @@ def test_empty_and_nan_scans_are_skipped_not_fatal(tmp_path, kitti16):
     assert summary["frames"] == 4 and summary["skipped_empty_scans"] == 1
 
 
+def test_empty_first_scan_with_loops_on(tmp_path, kitti16):
+    """An empty first scan still gets keyframe 0 (a node in the pose graph, no descriptor)."""
+    data = tmp_path / "scans"
+    data.mkdir()
+    for i, src in enumerate(sorted((kitti16 / "velodyne").glob("*.bin"))[:6]):
+        pts = np.fromfile(src, np.float32).reshape(-1, 4)
+        (pts[:0] if i == 0 else pts).tofile(data / f"{i:06d}.bin")
+    proc = lidar_slam("run", data, "--out", tmp_path / "o")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 6 and summary["skipped_empty_scans"] == 1
+
+
 def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16, monkeypatch):
     from lidar_slam import pipeline
     from lidar_slam.config import load_config

@@ -78,8 +78,10 @@ class LoopCloser:
             self._poses[kf.id] = self._poses[prev.id] @ T_prev_kf
         self.graph.set_initial(kf.id, self._poses[kf.id])
         query_pts = kf.points.astype(np.float64)
-        found = self.index.query(kf.id, query_pts)
         records: list[LoopRecord] = []
+        if len(query_pts) == 0:  # nothing in range: a graph node, but nothing to describe
+            return records
+        found = self.index.query(kf.id, query_pts)
         for cand in found.candidates[: self.cfg.loop.max_verify]:
             match = self.keyframes[cand.match]
             query_cloud = self.submap(kf.id, self.cfg.loop.verify.submap_radius)
