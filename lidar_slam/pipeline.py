@@ -70,6 +70,7 @@ class Pipeline:
         self.viz = viz
         self._last_stamp: float | None = None
         self._last_dt = 0.1
+        self._last_ref_s = 0.0  # mid-sweep offset from the stamp of the last registered scan
 
     def process(self, scan: Scan) -> None:
         """Run one scan through every stage."""
@@ -90,13 +91,21 @@ class Pipeline:
         if T_world_ref is None:
             log.warning("%s: empty scan after cropping, skipped (pose predicted)", scan.source)
             r.skipped_empty += 1
-            self._append(scan, self.odometry.predict())
+            # The prediction is of the sweep's middle, like every registration: move it to the
+            # stamp with the last scan's offset, and keep the clock going so that the next scan's
+            # dt spans one period, not two.
+            T_pred = self.odometry.predict()
+            if self._last_ref_s != 0.0:
+                T_pred = T_pred @ interpolate(np.eye(4), self.odometry.last_delta,
+                                              -self._last_ref_s / dt)
+            self._last_dt, self._last_stamp = dt, scan.stamp_s
+            self._append(scan, T_pred)
             return
         T_ref_stamp = np.eye(4)
         if ref_s != 0.0:  # the pose (and the cloud) refer to the stamp, not the mid-sweep
             T_ref_stamp = interpolate(np.eye(4), self.odometry.last_delta, -ref_s / dt)
         T_world_scan = T_world_ref @ T_ref_stamp
-        self._last_dt, self._last_stamp = dt, scan.stamp_s
+        self._last_dt, self._last_stamp, self._last_ref_s = dt, scan.stamp_s, ref_s
         r.seconds["odometry"] += time.perf_counter() - t0
         is_kf = self.keyframes.is_keyframe(T_world_scan)
         if is_kf:

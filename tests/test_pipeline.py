@@ -12,6 +12,7 @@ from lidar_slam.metrics import rpe
 from lidar_slam.odometry import Odometry
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_scans"
+SAMPLE_CONFIG = SAMPLE.parent / "configs" / "sample.yaml"
 
 
 def _odometry_rpe(deskew: bool) -> float:
@@ -52,3 +53,26 @@ def test_heavy_libraries_load_only_when_needed():
             "print(sorted(m for m in ('open3d', 'gtsam', 'scipy.spatial') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_an_empty_scan_does_not_shift_the_next_poses():
+    """A skipped (empty) scan's predicted pose is moved to its stamp and the clock keeps going,
+    so the next scan's stamp correction spans one period (it spanned two: 0.40 m off)."""
+    import dataclasses
+
+    src = open_source(SAMPLE)
+    cfg = load_config(SAMPLE_CONFIG, {"loop": {"enabled": False}})
+    k = 30
+
+    def scans():
+        for s in src.scans():
+            if s.index == k:
+                s = dataclasses.replace(s, points=s.points[:0], point_times=s.point_times[:0],
+                                        intensity=None)
+            yield s
+
+    P = np.stack(pipeline.run(scans(), cfg).odom_poses)
+    G = src.ground_truth
+    for j in (k + 1, k + 2, k + 3):
+        err = inverse(inverse(G[k - 1]) @ G[j]) @ (inverse(P[k - 1]) @ P[j])
+        assert np.linalg.norm(err[:3, 3]) < 0.15, j
