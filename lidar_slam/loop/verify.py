@@ -129,22 +129,28 @@ def information_matrix(src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np
                        corr: np.ndarray, T_match_query: np.ndarray, sigma_m: float,
                        cfg: VerifyConfig) -> np.ndarray:
     """6x6 information of T_match_query, rotation first (rx ry rz tx ty tz), for a perturbation
-    applied on the left in the match frame.
+    applied on the right, in the query frame: T_true = T exp(xi). That is the tangent space in
+    which gtsam's BetweenFactorPose3(match, query, T) measures its error, Logmap(T^-1 T_mq).
 
-    The point-to-plane Hessian sum(J^T J) / sigma^2 with J = [(p x n)^T, n^T] keeps the shape
-    (a corridor stays weak along its axis), but thousands of neighbouring residuals are not
-    independent, so it is scaled down uniformly until no direction is more certain than
-    cfg.info_min_rot_sigma_deg / cfg.info_min_trans_sigma_m. corr: (K, 2) query/match indices.
+    The point-to-plane Hessian sum(J^T J) / sigma^2 with J = [(p x n)^T, n^T], p the query point
+    and n the match normal both in the query frame, keeps the shape (a corridor stays weak along
+    its axis). Thousands of neighbouring residuals are not independent, so it is scaled down
+    uniformly until no direction is more certain than cfg.info_min_rot_sigma_deg /
+    cfg.info_min_trans_sigma_m. A direction the scans cannot observe at all keeps a weak
+    information of (10 deg, 1 m)^-2, so the matrix stays positive definite. corr: (K, 2)
+    query/match indices.
     """
-    p = src_pts[corr[:, 0]] @ T_match_query[:3, :3].T + T_match_query[:3, 3]
-    n = tgt_normals[corr[:, 1]]
+    R = T_match_query[:3, :3]
+    p = src_pts[corr[:, 0]]
+    n = tgt_normals[corr[:, 1]] @ R  # R^T n, row-wise
     J = np.hstack([np.cross(p, n), n])
     H = J.T @ J / max(sigma_m, 1e-3) ** 2
-    var = np.diag(np.linalg.pinv(H))
+    H = 0.5 * (H + H.T) + np.diag([np.radians(10.0) ** -2] * 3 + [1.0] * 3)
+    var = np.diag(np.linalg.inv(H))
     floor_r = np.radians(cfg.info_min_rot_sigma_deg) ** 2
     floor_t = cfg.info_min_trans_sigma_m**2
-    scale = max(1.0, floor_r / max(var[:3].min(), 1e-30), floor_t / max(var[3:].min(), 1e-30))
-    return 0.5 * (H + H.T) / scale
+    scale = max(1.0, floor_r / var[:3].min(), floor_t / var[3:].min())
+    return H / scale
 
 
 def _wrap(a: float) -> float:
