@@ -232,6 +232,8 @@ def optimize(
     """Optimise a pose graph with GTSAM Levenberg-Marquardt (prior on the first pose)."""
     from lidar_slam.backend.g2o_optimize import optimize_g2o
 
+    if robust == Robust.huber and not huber_k > 0:
+        raise _fail(f"--huber-k must be positive, got {huber_k}")
     rep = optimize_g2o(graph, out, robust=robust.value, huber_k=huber_k,
                        max_iterations=max_iterations)
     typer.echo(f"graph={graph} dims={rep.dims} vertices={rep.n_vertices} edges={rep.n_edges} "

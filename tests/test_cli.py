@@ -281,3 +281,31 @@ def test_eval_empty_pose_file_is_one_line(tmp_path):
     gt = tmp_path / "gt.txt"
     gt.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
     assert_one_line_error(lidar_slam("eval", empty, gt), "est.txt", "empty")
+
+
+def test_more_bad_inputs_are_one_line(tmp_path, kitti16):
+    g2o = tmp_path / "g.g2o"
+    g2o.write_text("EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    assert_one_line_error(lidar_slam("optimize", g2o, "--out", tmp_path / "o.g2o", "--robust",
+                                     "huber", "--huber-k", "0"), "--huber-k")
+    binary = tmp_path / "b.g2o"
+    binary.write_bytes(b"EDGE_SE2 \xff\xfe\x00\x01\n")
+    assert_one_line_error(lidar_slam("optimize", binary, "--out", tmp_path / "o.g2o"),
+                          "b.g2o", "UTF-8")
+    # A KITTI sequence whose calib has a typo, and one whose times.txt has two columns.
+    import shutil
+
+    seq = tmp_path / "seq"
+    shutil.copytree(kitti16, seq)
+    calib = seq / "calib.txt"
+    text = calib.read_text()
+    calib.write_text("\n".join(
+        ln.replace("Tr:", "Tr: O.5", 1) if ln.startswith("Tr:") else ln
+        for ln in text.splitlines()) + "\n")
+    assert_one_line_error(lidar_slam("run", seq, "--out", tmp_path / "o1"), "calib.txt", "Tr")
+    calib.write_text(text)
+    times = seq / "times.txt"
+    stamps = np.loadtxt(times)
+    np.savetxt(times, np.c_[stamps, stamps])
+    assert_one_line_error(lidar_slam("run", seq, "--out", tmp_path / "o2"), "times.txt",
+                          "one stamp per line")

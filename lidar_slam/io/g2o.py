@@ -152,41 +152,44 @@ def read_g2o(path: str | Path) -> G2oGraph:
     poses: dict[int, np.ndarray] = {}
     edges: list[G2oEdge] = []
     edge_lines: list[int] = []
-    with open(path) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            tokens = line.split()
-            if not tokens or tokens[0].startswith("#"):
-                continue
-            tag = tokens[0]
-            if tag == "FIX":
-                log.info("%s: line %d: FIX ignored (the first node gets a prior)", path, lineno)
-                continue
-            if tag not in _RECORDS:
-                raise InputError(path, f"line {lineno}: unsupported record '{tag}' "
-                                       f"(expected one of {', '.join(_RECORDS)})")
-            if dims is None:
-                dims = _RECORDS[tag][0]
-            elif _RECORDS[tag][0] != dims:
-                raise InputError(path, f"line {lineno}: {tag} mixes {_RECORDS[tag][0]}D with "
-                                       f"{dims}D records")
-            values, ids = _parse_line(tokens, path, lineno)
-            if tag.startswith("VERTEX"):
-                if ids[0] in poses:
-                    raise InputError(path, f"line {lineno}: duplicate vertex {ids[0]}")
-                poses[ids[0]] = (se2_matrix(*values) if dims == 2
-                                 else _se3_matrix(values, path, lineno))
-                continue
-            i, j = ids
-            if i == j:
-                raise InputError(path, f"line {lineno}: edge joins node {i} to itself")
-            if dims == 2:
-                T = se2_matrix(*values[:3])
-                info = _info_from_upper(values[3:], 3)
-            else:
-                T = _se3_matrix(values[:7], path, lineno)
-                info = g2o_to_gtsam_information(_info_from_upper(values[7:], 6))
-            edges.append(G2oEdge(i, j, T, info))
-            edge_lines.append(lineno)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(path, "not a text g2o file (not UTF-8)") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        tag = tokens[0]
+        if tag == "FIX":
+            log.info("%s: line %d: FIX ignored (the first node gets a prior)", path, lineno)
+            continue
+        if tag not in _RECORDS:
+            raise InputError(path, f"line {lineno}: unsupported record '{tag}' "
+                                   f"(expected one of {', '.join(_RECORDS)})")
+        if dims is None:
+            dims = _RECORDS[tag][0]
+        elif _RECORDS[tag][0] != dims:
+            raise InputError(path, f"line {lineno}: {tag} mixes {_RECORDS[tag][0]}D with "
+                                   f"{dims}D records")
+        values, ids = _parse_line(tokens, path, lineno)
+        if tag.startswith("VERTEX"):
+            if ids[0] in poses:
+                raise InputError(path, f"line {lineno}: duplicate vertex {ids[0]}")
+            poses[ids[0]] = (se2_matrix(*values) if dims == 2
+                             else _se3_matrix(values, path, lineno))
+            continue
+        i, j = ids
+        if i == j:
+            raise InputError(path, f"line {lineno}: edge joins node {i} to itself")
+        if dims == 2:
+            T = se2_matrix(*values[:3])
+            info = _info_from_upper(values[3:], 3)
+        else:
+            T = _se3_matrix(values[:7], path, lineno)
+            info = g2o_to_gtsam_information(_info_from_upper(values[7:], 6))
+        edges.append(G2oEdge(i, j, T, info))
+        edge_lines.append(lineno)
     if not edges:
         raise InputError(path, "no EDGE_SE2 or EDGE_SE3:QUAT records")
     _check_information(edges, edge_lines, path)

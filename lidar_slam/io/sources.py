@@ -66,6 +66,8 @@ def _scan_files(folder: Path) -> list[Path]:
 def _load_stamps(path: Path, n: int) -> np.ndarray:
     if path.is_file():
         stamps = read_times(path)
+        if stamps.ndim != 1:
+            raise InputError(path, f"expected one stamp per line, found {stamps.shape[1]} columns")
         if len(stamps) != n:
             raise InputError(path, f"has {len(stamps)} stamps for {n} scans")
         return stamps

@@ -76,7 +76,10 @@ def read_kitti_calib_tr(path: str | Path) -> np.ndarray:
     for line in p.read_text().splitlines():
         key, _, values = line.partition(":")
         if key.strip() == "Tr":
-            nums = np.array(values.split(), dtype=float)
+            try:
+                nums = np.array(values.split(), dtype=float)
+            except ValueError:
+                raise InputError(p, f"Tr: not 12 numbers ({values.strip()[:60]})") from None
             if nums.size != 12:
                 raise InputError(p, "Tr must have 12 numbers")
             T = np.eye(4)
