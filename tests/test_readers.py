@@ -51,6 +51,16 @@ def test_time_units_are_inferred(raw, span):
     assert abs(times_to_relative_seconds(raw).max() - span) < 1e-9
 
 
+def test_relative_times_keep_their_zero_and_absolute_ones_start_at_zero():
+    """Times already relative to the stamp (a scan stamped at the sweep's end) are kept; UNIX
+    times become relative to the sweep's first point."""
+    np.testing.assert_allclose(times_to_relative_seconds(np.array([-0.1, -0.05, 0.0])),
+                               [-0.1, -0.05, 0.0])
+    np.testing.assert_allclose(times_to_relative_seconds(np.array([-100_000, 0])), [-0.1, 0.0])
+    unix_ns = np.array([1_630_577_758_000_000_000, 1_630_577_758_100_000_000], dtype=np.int64)
+    np.testing.assert_allclose(times_to_relative_seconds(unix_ns), [0.0, 0.1], atol=1e-6)
+
+
 def test_folder_is_sorted_naturally_and_nan_points_dropped(tmp_path):
     for i in (10, 2, 1):
         pts, inten = _cloud(20, seed=i)

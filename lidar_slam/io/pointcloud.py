@@ -24,19 +24,23 @@ class CloudData:
 
 
 def times_to_relative_seconds(raw: np.ndarray) -> np.ndarray:
-    """Per-point times in any unit (s, us, ns) to seconds relative to the earliest point.
+    """Per-point times in any unit (s, us, ns) to seconds relative to the scan stamp.
 
     The unit is inferred from the span: a lidar sweep lasts 0.05-0.5 s, so a span above 1e5 is
-    nanoseconds and above 100 is microseconds.
+    nanoseconds and above 100 is microseconds. Times that already lie within 1 s of zero are
+    taken as relative to the stamp and kept (e.g. [-0.1, 0] for a scan stamped at the sweep's
+    end); absolute times (UNIX epoch) become relative to the sweep's earliest point.
     """
     t = np.asarray(raw, dtype=np.float64)
-    rel = t - t.min() if t.size else t
-    span = float(rel.max()) if rel.size else 0.0
-    if span > 1e5:
-        rel = rel * 1e-9
-    elif span > 100.0:
-        rel = rel * 1e-6
-    return rel
+    if not t.size:
+        return t
+    t0 = float(t.min())
+    rel = t - t0
+    span = float(rel.max())
+    scale = 1e-9 if span > 1e5 else 1e-6 if span > 100.0 else 1.0
+    if abs(t0) * scale <= 1.0 and abs(float(t.max())) * scale <= 1.0:
+        return t * scale
+    return rel * scale
 
 
 def read_bin(path: Path) -> CloudData:
