@@ -82,13 +82,17 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     n = len(result.indices)
     summary: dict = {"frames": n, "keyframes": len(result.keyframes)}
     if n:
+        # World = the first frame at its stamp: frame 0 is the identity in every pose file.
         poses = result.final_poses()
-        odom = np.stack(result.odom_poses)
+        anchor = inverse(poses[0])
+        poses = anchor @ poses
+        odom = inverse(result.odom_poses[0]) @ np.stack(result.odom_poses)
         stamps = np.asarray(result.stamps_s)
         write_kitti_poses(out_dir / "poses_kitti.txt", poses)
         write_tum(out_dir / "poses_tum.txt", stamps, poses)
         write_kitti_poses(out_dir / "odometry_kitti.txt", odom)
-        pts, inten = build_map(result.keyframes, result.kf_poses, cfg.map.voxel_size_m)
+        pts, inten = build_map(result.keyframes, {k: anchor @ T for k, T in result.kf_poses.items()},
+                               cfg.map.voxel_size_m)
         write_ply(out_dir / "map.ply", pts, inten)
         summary["map_points"] = int(len(pts))
         summary["path_length_m"] = path_length_m(poses)

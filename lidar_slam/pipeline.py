@@ -71,6 +71,7 @@ class Pipeline:
         self._last_stamp: float | None = None
         self._last_dt = 0.1
         self._last_ref_s = 0.0  # mid-sweep offset from the stamp of the last registered scan
+        self._first_ref_s = 0.0  # the same for frame 0, whose pose is fixed once motion is known
 
     def process(self, scan: Scan) -> None:
         """Run one scan through every stage."""
@@ -105,6 +106,14 @@ class Pipeline:
         if ref_s != 0.0:  # the pose (and the cloud) refer to the stamp, not the mid-sweep
             T_ref_stamp = interpolate(np.eye(4), self.odometry.last_delta, -ref_s / dt)
         T_world_scan = T_world_ref @ T_ref_stamp
+        if len(r.odom_poses) == 1 and self._first_ref_s:
+            # Frame 0 was registered before any velocity was known, so its pose is of its
+            # sweep's middle (the world origin). With the first motion now estimated, move it to
+            # its stamp like every other frame. Keyframe 0 stays at the middle, where its cloud is.
+            r.odom_poses[0] = interpolate(np.eye(4), self.odometry.last_delta,
+                                          -self._first_ref_s / dt)
+        if not r.odom_poses:
+            self._first_ref_s = ref_s
         self._last_dt, self._last_stamp, self._last_ref_s = dt, scan.stamp_s, ref_s
         r.seconds["odometry"] += time.perf_counter() - t0
         is_kf = self.keyframes.is_keyframe(T_world_scan)
