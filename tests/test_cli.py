@@ -126,20 +126,27 @@ def test_sigint_writes_partial_outputs(tmp_path, kitti16):
     assert 1 <= len(poses) <= 16
 
 
+def _wait_for_odometry_lines(proc, out: Path, lines: int) -> Path:
+    """Wait (up to 2 min) until a running `lidar-slam run` streamed `lines` odometry lines."""
+    import time
+
+    odo = out / "odometry_kitti.txt"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if odo.is_file() and len(odo.read_text().splitlines()) >= lines:
+            break
+        time.sleep(0.05)
+    return odo
+
+
 def test_sigterm_writes_partial_outputs(tmp_path, ouster_loop):
     """SIGTERM (kill, timeout, docker stop) keeps what was computed, like Ctrl-C."""
     import signal
-    import time
 
     out = tmp_path / "o"
     proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(ouster_loop),
                              "--out", str(out), "--no-loops"], stderr=subprocess.PIPE, text=True)
-    odo = out / "odometry_kitti.txt"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if odo.is_file() and len(odo.read_text().splitlines()) >= 3:
-            break
-        time.sleep(0.05)
+    odo = _wait_for_odometry_lines(proc, out, 3)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert "Traceback" not in err
@@ -153,17 +160,11 @@ def test_sigterm_writes_partial_outputs(tmp_path, ouster_loop):
 def test_killed_run_keeps_its_odometry(tmp_path, ouster_loop):
     """Even SIGKILL (no handler can run) leaves the odometry computed so far, line by line."""
     import signal
-    import time
 
     out = tmp_path / "o"
     proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(ouster_loop),
                              "--out", str(out), "--no-loops"], stderr=subprocess.DEVNULL)
-    odo = out / "odometry_kitti.txt"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if odo.is_file() and len(odo.read_text().splitlines()) >= 3:
-            break
-        time.sleep(0.05)
+    odo = _wait_for_odometry_lines(proc, out, 3)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=60)
     poses = read_kitti_poses(odo)

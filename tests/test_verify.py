@@ -162,10 +162,9 @@ def test_an_initial_pose_from_the_graph_is_used_instead_of_the_yaw_guess(data):
     assert max(data.errors(res.constraint.T_match_query, query, match)) < 1.0
 
 
-def test_information_matrix_is_rotation_first_and_weak_along_a_corridor():
-    """Walls at y = +-2 m, floor and ceiling, 40 m along x: x translation is unobservable."""
+def _corridor(n: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """Walls at y = +-2 m, floor and ceiling at z = -+1.5 m, 40 m along x: points and normals."""
     rng = np.random.default_rng(0)
-    n = 2000
     x = rng.uniform(-20, 20, (4, n))
     t = rng.uniform(-1, 1, (4, n))
     pts = np.vstack([
@@ -173,6 +172,12 @@ def test_information_matrix_is_rotation_first_and_weak_along_a_corridor():
         np.c_[x[2], 2 * t[2], np.full(n, -1.5)], np.c_[x[3], 2 * t[3], np.full(n, 1.5)],
     ])
     normals = np.repeat(np.array([[0, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1]], float), n, axis=0)
+    return pts, normals
+
+
+def test_information_matrix_is_rotation_first_and_weak_along_a_corridor():
+    """Walls at y = +-2 m, floor and ceiling, 40 m along x: x translation is unobservable."""
+    pts, normals = _corridor()
     corr = np.c_[np.arange(len(pts)), np.arange(len(pts))]
     info = information_matrix(pts, pts, normals, corr, np.eye(4), 0.05, VerifyConfig())
     # Order (rx, ry, rz, tx, ty, tz): tx (index 3) is free, ty and tz are strongly constrained.
@@ -193,15 +198,7 @@ def test_information_matrix_is_in_the_query_frame():
     """gtsam's BetweenFactorPose3(match, query, T) measures its error as T_true = T exp(xi), in
     the query frame. A corridor along the match frame's x axis, seen from a query turned by
     90 deg, is free along the query's y axis."""
-    rng = np.random.default_rng(0)
-    n = 2000
-    x = rng.uniform(-20, 20, (4, n))
-    t = rng.uniform(-1, 1, (4, n))
-    tgt = np.vstack([
-        np.c_[x[0], np.full(n, 2.0), 1.5 * t[0]], np.c_[x[1], np.full(n, -2.0), 1.5 * t[1]],
-        np.c_[x[2], 2 * t[2], np.full(n, -1.5)], np.c_[x[3], 2 * t[3], np.full(n, 1.5)],
-    ])
-    normals = np.repeat(np.array([[0, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1]], float), n, axis=0)
+    tgt, normals = _corridor()
     T = make_pose(yaw_matrix(np.pi / 2)[:3, :3], [3.0, 1.0, 0.0])
     src = transform_points(inverse(T), tgt)  # the same points seen from the query
     corr = np.c_[np.arange(len(tgt)), np.arange(len(tgt))]
