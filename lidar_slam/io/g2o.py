@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
-from lidar_slam.geometry import matrix_from_quat, quat_from_matrix
+from lidar_slam.geometry import matrix_from_quat, to_xyz_quat
 
 log = logging.getLogger(__name__)
 
@@ -254,12 +254,10 @@ def write_g2o(path: str | Path, graph: G2oGraph) -> None:
             lines.append(f"EDGE_SE2 {e.i} {e.j} {_fmt(se2_params(e.T_i_j))} "
                          f"{_fmt(e.information[iu])}")
     else:
-        def xyz_quat(T: np.ndarray) -> np.ndarray:
-            return np.r_[T[:3, 3], quat_from_matrix(T[:3, :3])]
-
         for k in keys:
-            lines.append(f"VERTEX_SE3:QUAT {k} {_fmt(xyz_quat(graph.poses[k]))}")
+            lines.append(f"VERTEX_SE3:QUAT {k} {_fmt(to_xyz_quat(graph.poses[k]))}")
         for e in graph.edges:
             info = gtsam_to_g2o_information(e.information)
-            lines.append(f"EDGE_SE3:QUAT {e.i} {e.j} {_fmt(xyz_quat(e.T_i_j))} {_fmt(info[iu])}")
+            lines.append(f"EDGE_SE3:QUAT {e.i} {e.j} {_fmt(to_xyz_quat(e.T_i_j))} "
+                         f"{_fmt(info[iu])}")
     Path(path).write_text("\n".join(lines) + "\n")
