@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import shutil
 import signal
 import sys
 import time
@@ -20,6 +21,7 @@ app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                   help="Lidar SLAM: odometry, loop closure, pose graph, map and metrics.")
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+log = logging.getLogger("lidar_slam")
 
 
 def _fail(message: str, code: int = EXIT_BAD_INPUT) -> typer.Exit:
@@ -67,35 +69,40 @@ def _summary_table(summary: dict) -> str:
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
 
 
-class _SigtermAsInterrupt:
-    """While active, SIGTERM (kill, timeout, docker stop, a batch scheduler) stops the run the way
-    Ctrl-C does: the frames computed so far are kept and written. deferred(): a SIGTERM is only
-    noted, so the outputs being written are finished first."""
+class _StopSignals:
+    """While active, Ctrl-C and SIGTERM (kill, timeout, docker stop, a batch scheduler) ask the
+    run to stop after the scan in hand, so the frames computed so far are kept and written; a
+    second one stops at once (KeyboardInterrupt). deferred(): signals are only noted, so the
+    outputs being written are finished first."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):
         self.received = False
-        self._old = None
+        self._old: dict = {}
 
-    def _raise(self, signum, frame):
+    def _request(self, signum, frame):
+        if self.received:
+            raise KeyboardInterrupt
         self.received = True
-        raise KeyboardInterrupt
 
     def _note(self, signum, frame):
         self.received = True
 
     def _install(self, handler) -> None:
         try:
-            self._old = signal.signal(signal.SIGTERM, handler)
+            for sig in self.SIGNALS:
+                self._old[sig] = signal.signal(sig, handler)
         except ValueError:  # not the main thread (embedded use): leave signals alone
-            self._old = None
+            self._restore()
 
     def _restore(self) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGTERM, self._old)
-            self._old = None
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
 
     def __enter__(self):
-        self._install(self._raise)
+        self._install(self._request)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -110,10 +117,40 @@ class _SigtermAsInterrupt:
             self._restore()
 
 
+# Every file and folder `run` writes into --out: --overwrite deletes these and nothing else.
+RUN_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.ply", "loops.csv",
+               "graph.g2o", "config.yaml", "summary.json", "error_traceback.txt", "keyframes",
+               "checkpoint")
+
+
+def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: bool = False
+                    ) -> bool:
+    """The one rule for commands that write a folder: an --out that already holds files is
+    refused unless --overwrite (our files are deleted first) or --resume. Returns True when
+    there is a run to resume."""
+    if overwrite and resume:
+        raise _fail("--overwrite and --resume exclude each other")
+    if out.exists() and not out.is_dir():
+        raise _fail(f"{out}: --out exists and is not a folder")
+    held = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if held and resume:
+        return True
+    if held and not overwrite:
+        flag = "--overwrite or --resume" if ours is RUN_OUTPUTS else "--overwrite"
+        raise _fail(f"{out}: --out already holds files ({', '.join(held[:3])}"
+                    f"{', ...' if len(held) > 3 else ''}); pass {flag}")
+    for name in held:
+        if name in ours:
+            path = out / name
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    out.mkdir(parents=True, exist_ok=True)  # fail before the run, not after it
+    return False
+
+
 class _Progress:
     """A rich progress bar with frames/s on a terminal; silent otherwise (rich not imported)."""
 
-    def __init__(self, name: str, total: int):
+    def __init__(self, name: str, total: int, done: int = 0):
         self.bar = None
         self.t0 = time.perf_counter()
         if sys.stderr.isatty():
@@ -124,12 +161,13 @@ class _Progress:
             self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
                                 MofNCompleteColumn(), TextColumn("{task.fields[fps]:.1f} frames/s"),
                                 TimeElapsedColumn(), console=Console(stderr=True))
-            self.task = self.bar.add_task(name, total=total, fps=0.0)
+            self.task = self.bar.add_task(name, total=total, completed=done, fps=0.0)
+            self.done0 = done
             self.bar.start()
 
     def tick(self, _scan=None) -> None:
         if self.bar is not None:
-            done = self.bar.tasks[0].completed + 1
+            done = self.bar.tasks[0].completed + 1 - self.done0
             fps = done / max(time.perf_counter() - self.t0, 1e-9)
             self.bar.update(self.task, advance=1, fps=fps)
 
@@ -151,12 +189,18 @@ def run(
     no_deskew: bool = typer.Option(False, "--no-deskew", help="Do not deskew."),
     viz: bool = typer.Option(False, "--viz", help="Open the rerun viewer."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record a rerun .rrd file."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a previous run in --out."),
+    resume: bool = typer.Option(False, "--resume",
+                                help="Continue the killed run in --out from its checkpoint."),
 ) -> None:
     """Run SLAM on DATA and write poses, map, config and summary into --out."""
-    from lidar_slam import pipeline
+    import traceback
+
+    from lidar_slam import checkpoint
     from lidar_slam.config import load_config
     from lidar_slam.io.sources import open_source
     from lidar_slam.outputs import OdometryStream, write_run
+    from lidar_slam.pipeline import Pipeline
 
     overrides: dict = {}
     if no_loops:
@@ -164,48 +208,79 @@ def run(
     if no_deskew:
         overrides["data"] = {"deskew": False}
     cfg = load_config(config, overrides)
-    out.mkdir(parents=True, exist_ok=True)  # fail before the run, not after it
+    resuming = prepare_out_dir(out, RUN_OUTPUTS, overwrite, resume)
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction)
     if start >= len(source):
         raise _fail(f"{data}: --start {start} is past the last scan ({len(source)} scans)")
     total = len(source) - start if n_scans is None else min(n_scans, len(source) - start)
+    identity = checkpoint.describe_run(data, start, n_scans, topic, cfg)
+    if resuming and not checkpoint.has_checkpoint(out):
+        if (out / "checkpoint" / "run.json").is_file():
+            checkpoint.check_same_run(out, identity)
+        prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)  # killed before its first checkpoint
+        resuming = False
+    elif resuming:
+        checkpoint.check_same_run(out, identity)
     visualizer = None
     if viz or rrd is not None:
         from lidar_slam.viz import RerunViz
 
         visualizer = RerunViz(spawn=viz, rrd_path=rrd)
     t0 = time.perf_counter()
-    progress = _Progress(source.name, total)
-    stream = OdometryStream(out)
-
-    def on_scan(scan, result) -> None:
-        progress.tick(scan)
-        stream.append(result.odom_poses[-1])
-
-    terminated = _SigtermAsInterrupt()
-    try:
-        with terminated:
-            result = pipeline.run(source.scans(start, total), cfg, on_scan=on_scan,
-                                  viz=visualizer)
-    finally:
-        progress.close()
-        stream.close()
-    with terminated.deferred():  # a SIGTERM now waits until the outputs are written
+    pipe = Pipeline(cfg, out, visualizer, resume=resuming)
+    done = 0
+    if resuming:
+        done = checkpoint.restore(out, pipe)
+        log.warning("resuming %s at frame %d of %d", out, done, total)
+    else:
+        checkpoint.start_run(out, identity)
+    progress = _Progress(source.name, total, done)
+    stream = OdometryStream(out, pipe.result.odom_poses)
+    every = cfg.checkpoint.every_keyframes
+    stop = _StopSignals()
+    error = internal_error = None
+    with stop:
+        try:
+            for scan in source.scans(start + done, total - done):
+                n_kf = len(pipe.result.store)
+                pipe.process(scan)
+                progress.tick(scan)
+                stream.append(pipe.result.odom_poses[-1])
+                if every and len(pipe.result.store) != n_kf and len(pipe.result.store) % every == 0:
+                    checkpoint.save(out, pipe, pipe.loops_applied_upto)
+                if stop.received:
+                    break
+        except KeyboardInterrupt:
+            stop.received = True
+        except LidarSlamError as exc:
+            error = str(exc)
+        except Exception:  # a bug must not cost the frames already computed: keep them, report it
+            internal_error = traceback.format_exc()
+            log.error("internal error after %d frames", len(pipe.result.indices))
+        finally:
+            progress.close()
+            stream.close()
+    with stop.deferred():  # a signal now waits until the outputs are written
+        result = pipe.finish()
+        status = {"interrupted": stop.received}
+        if error:
+            status["stopped_by_error"] = error
         summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
-                            extra={"input": str(data), "start": start})
-    result.interrupted = result.interrupted or terminated.received
+                            extra={**status, "input": str(data), "start": start,
+                                   "resumed_at_frame": done})
+        pipe.close()
     if visualizer is not None:
-        visualizer.finish(result)
+        visualizer.finish(result, out / "map.ply")
     typer.echo(_summary_table(summary))
     typer.echo(f"wrote {out}")
-    if result.internal_error:
-        (out / "error_traceback.txt").write_text(result.internal_error)
+    if internal_error:
+        (out / "error_traceback.txt").write_text(internal_error)
         raise _fail(f"internal error (traceback in {out / 'error_traceback.txt'}); the "
                     f"{summary['frames']} frames so far written to {out}", 1)
-    if result.error:
-        raise _fail(f"{result.error} (stopped there; frames so far written to {out})")
-    if result.interrupted:
+    if error:
+        raise _fail(f"{error} (stopped there; frames so far written to {out})")
+    if stop.received:
         raise _fail(f"interrupted; the {summary['frames']} frames so far written to {out}",
                     EXIT_INTERRUPTED)
 

@@ -20,6 +20,9 @@ class DataConfig(_Section):
     max_range_m: float = 100.0
     # Deskew with per-point times (constant velocity) when the scans carry them. Done once, here.
     deskew: bool = True
+    # Deskew every point of every scan (slow; for comparison): by default only the points used,
+    # one per odometry voxel and the keyframe clouds.
+    deskew_all_points: bool = False
     # kiss-icp's 0.205 deg vertical correction for KITTI HDL-64E scans (KITTI layout only).
     kitti_vertical_correction: bool = False
 
@@ -111,6 +114,11 @@ class LoopConfig(_Section):
     enabled: bool = True
     # Candidates verified per keyframe query (best descriptor distance first).
     max_verify: int = 3
+    # Detection runs on a worker thread ("inline": in the main flow, for debugging); the result
+    # of keyframe k is applied to the graph when keyframe k + collect_lag_keyframes is made (or
+    # at the end), whatever the worker's speed, so runs are deterministic.
+    worker: Literal["thread", "inline"] = "thread"
+    collect_lag_keyframes: int = 10
     scan_context: ScanContextConfig = ScanContextConfig()
     verify: VerifyConfig = VerifyConfig()
 
@@ -120,6 +128,11 @@ class MapConfig(_Section):
     max_range_m: float = 60.0
 
 
+class CheckpointConfig(_Section):
+    # A checkpoint (for `run --resume`) every this many keyframes; 0 = none.
+    every_keyframes: int = 100
+
+
 class SlamConfig(_Section):
     data: DataConfig = DataConfig()
     odometry: OdometryConfig = OdometryConfig()
@@ -127,6 +140,7 @@ class SlamConfig(_Section):
     loop: LoopConfig = LoopConfig()
     backend: BackendConfig = BackendConfig()
     map: MapConfig = MapConfig()
+    checkpoint: CheckpointConfig = CheckpointConfig()
 
     def voxel_size_m(self) -> float:
         """Effective odometry voxel size in metres."""

@@ -1,11 +1,39 @@
-"""Keyframe selection by travelled distance and rotation."""
+"""Keyframes: selection by travelled distance and rotation, and their on-disk store.
+
+The store keeps every keyframe's cloud on disk in the run folder, so memory does not grow with the
+drive; only a small table (ids, frames, odometry poses) and a bounded cache of recent clouds stay
+in RAM. Layout (version 1), under RUN/keyframes/:
+
+- `manifest.json`: {"version", "keyframes", "points"}: how many table rows and points are valid
+  when the run last flushed the store (at every checkpoint and at the end of the run).
+- `table.bin`: one record per keyframe, little-endian: id int64, frame_index int64, first point
+  int64, point count int64, T_world_kf_odom (4x4 float64, row-major), has_intensity uint8.
+- `points.bin`: float32 x, y, z, intensity per point (metres, the keyframe's sensor frame at
+  its scan's stamp), keyframe after keyframe.
+
+The same layout is what a later command (resume, localise, export) opens.
+"""
 
 from __future__ import annotations
+
+import json
+import os
+import tempfile
+import threading
+from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 
 from lidar_slam.config import KeyframeConfig
+from lidar_slam.errors import InputError
 from lidar_slam.geometry import relative, rotation_angle_deg
+from lidar_slam.types import Keyframe
+
+STORE_VERSION = 1
+TABLE_DTYPE = np.dtype([("id", "<i8"), ("frame_index", "<i8"), ("first", "<i8"), ("count", "<i8"),
+                        ("T", "<f8", (4, 4)), ("has_intensity", "u1")])
+POINT_DTYPE = np.dtype("<f4")  # 4 per point: x, y, z, intensity
 
 
 class KeyframeSelector:
@@ -13,17 +41,163 @@ class KeyframeSelector:
 
     def __init__(self, cfg: KeyframeConfig):
         self.cfg = cfg
-        self._last: np.ndarray | None = None
+        self.last: np.ndarray | None = None
 
     def is_keyframe(self, T_world_scan: np.ndarray) -> bool:
         """True for the first scan and whenever the motion since the last keyframe is large enough."""
-        if self._last is None:
-            self._last = T_world_scan
+        if self.last is None:
+            self.last = T_world_scan
             return True
-        T_kf_scan = relative(self._last, T_world_scan)
+        T_kf_scan = relative(self.last, T_world_scan)
         moved = np.linalg.norm(T_kf_scan[:3, 3]) >= self.cfg.distance_m
         turned = rotation_angle_deg(T_kf_scan) >= self.cfg.rotation_deg
         if moved or turned:
-            self._last = T_world_scan
+            self.last = T_world_scan
             return True
         return False
+
+
+class KeyframeStore:
+    """Append-only keyframe store in `root` (see the module doc); thread-safe reads."""
+
+    def __init__(self, root: str | Path | None, keep: bool = False, cache_size: int = 64):
+        """A new, empty store in root (a temporary folder when None); keep=True reopens the
+        store there instead (see truncate)."""
+        self._tmp = None
+        if root is None:  # library use without a run folder: a temporary one, removed with self
+            self._tmp = tempfile.TemporaryDirectory(prefix="lidar_slam_keyframes_")
+            root = self._tmp.name
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._table = np.zeros(64, dtype=TABLE_DTYPE)
+        self._n = 0
+        self._n_points = 0
+        self._cache: OrderedDict[int, Keyframe] = OrderedDict()
+        self._cache_size = cache_size
+        self._lock = threading.Lock()
+        table_path = self.root / "table.bin"
+        if keep and table_path.is_file():
+            self._read_manifest()  # refuses another layout version
+            table = np.fromfile(table_path, dtype=TABLE_DTYPE)
+            self._n = len(table)
+            self._table = np.resize(table, max(64, 2 * self._n))
+        flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | (0 if keep else os.O_TRUNC)
+        self._table_fd = os.open(table_path, flags)
+        self._points_fd = os.open(self.root / "points.bin", flags)
+        self._read_fd = os.open(self.root / "points.bin", os.O_RDONLY)
+        self.truncate(self._n)
+
+    def truncate(self, n_keyframes: int) -> None:
+        """Keep only the first n_keyframes (what a checkpoint vouches for; a killed run may have
+        stored more, or a partial record)."""
+        if n_keyframes > self._n:
+            raise InputError(self.root / "table.bin", f"holds {self._n} keyframes, "
+                             f"{n_keyframes} expected")
+        self._n = n_keyframes
+        last = self._table[n_keyframes - 1] if n_keyframes else None
+        self._n_points = 0 if last is None else int(last["first"] + last["count"])
+        os.ftruncate(self._table_fd, self._n * TABLE_DTYPE.itemsize)
+        os.ftruncate(self._points_fd, self._n_points * 4 * POINT_DTYPE.itemsize)
+        with self._lock:
+            self._cache.clear()
+
+    def _read_manifest(self) -> dict | None:
+        path = self.root / "manifest.json"
+        if not path.is_file():
+            return None
+        try:
+            manifest = json.loads(path.read_text())
+        except ValueError as exc:
+            raise InputError(path, f"not valid JSON ({exc})") from exc
+        if manifest.get("version") != STORE_VERSION:
+            raise InputError(path, f"keyframe store version {manifest.get('version')}, "
+                             f"this lidar-slam reads version {STORE_VERSION}")
+        return manifest
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, frame_index: int, T_world_kf_odom: np.ndarray, points: np.ndarray,
+            intensity: np.ndarray | None) -> Keyframe:
+        """Append a keyframe (points (K,3) in its frame at the stamp); returns it with its id."""
+        kf_id = self._n
+        rows = np.zeros((len(points), 4), dtype=POINT_DTYPE)
+        rows[:, :3] = points
+        if intensity is not None:
+            rows[:, 3] = intensity
+        os.write(self._points_fd, rows.tobytes())
+        rec = np.zeros(1, dtype=TABLE_DTYPE)
+        rec[0] = (kf_id, frame_index, self._n_points, len(points), T_world_kf_odom,
+                  intensity is not None)
+        os.write(self._table_fd, rec.tobytes())
+        with self._lock:
+            if self._n == len(self._table):
+                self._table = np.resize(self._table, 2 * self._n)
+            self._table[self._n] = rec[0]
+            self._n += 1
+            self._n_points += len(points)
+        kf = Keyframe(kf_id, int(frame_index), np.array(T_world_kf_odom, dtype=np.float64),
+                      rows[:, :3], rows[:, 3] if intensity is not None else None)
+        self._remember(kf)
+        return kf
+
+    def _remember(self, kf: Keyframe) -> None:
+        with self._lock:
+            self._cache[kf.id] = kf
+            self._cache.move_to_end(kf.id)
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+
+    def T_world_kf_odom(self, kf_id: int) -> np.ndarray:
+        """Odometry pose (4x4) of keyframe kf_id."""
+        return np.array(self._table[kf_id]["T"])
+
+    def frame_index(self, kf_id: int) -> int:
+        return int(self._table[kf_id]["frame_index"])
+
+    def table(self) -> np.ndarray:
+        """A copy of the valid table rows (structured array, TABLE_DTYPE)."""
+        with self._lock:
+            return self._table[: self._n].copy()
+
+    def get(self, kf_id: int) -> Keyframe:
+        """Keyframe kf_id with its cloud (from the cache, else read from disk)."""
+        with self._lock:
+            kf = self._cache.get(kf_id)
+            if kf is not None:
+                self._cache.move_to_end(kf_id)
+                return kf
+            if not 0 <= kf_id < self._n:
+                raise KeyError(kf_id)
+            rec = self._table[kf_id].copy()
+        nbytes = int(rec["count"]) * 4 * POINT_DTYPE.itemsize
+        raw = os.pread(self._read_fd, nbytes, int(rec["first"]) * 4 * POINT_DTYPE.itemsize)
+        rows = np.frombuffer(raw, dtype=POINT_DTYPE).reshape(-1, 4)
+        kf = Keyframe(kf_id, int(rec["frame_index"]), np.array(rec["T"]), rows[:, :3],
+                      rows[:, 3] if rec["has_intensity"] else None)
+        self._remember(kf)
+        return kf
+
+    def flush(self) -> None:
+        """Make everything added so far durable and vouched for by the manifest (atomic)."""
+        os.fsync(self._points_fd)
+        os.fsync(self._table_fd)
+        write_atomic(self.root / "manifest.json", json.dumps(
+            {"version": STORE_VERSION, "keyframes": self._n, "points": self._n_points}) + "\n")
+
+    def close(self) -> None:
+        for fd in (self._table_fd, self._points_fd, self._read_fd):
+            os.close(fd)
+        if self._tmp is not None:
+            self._tmp.cleanup()
+
+
+def write_atomic(path: str | Path, text: str | bytes) -> None:
+    """Write a file via a temporary file and a rename: readers see the old or the new file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(text.encode() if isinstance(text, str) else text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)

@@ -11,14 +11,33 @@ KissICP's on real scans.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from kiss_icp.pybind import kiss_icp_pybind as kp
 
 from lidar_slam.config import SlamConfig
+from lidar_slam.frontend.deskew import DeskewedScan
+from lidar_slam.geometry import interpolate
 
 
 def _vec(points: np.ndarray):
     return kp._Vector3dVector(points)
+
+
+@dataclass(frozen=True)
+class OdometryResult:
+    """One scan's odometry. T_world_scan: the pose at the scan's stamp; T_world_ref: at the
+    instant the scan was registered (the middle of its sweep when deskewed); T_ref_stamp links
+    the two. registered: False for a scan with no point in range (its pose is the prediction).
+    T_world_first: set once, on the second registered scan: frame 0's pose moved to its stamp,
+    which needs the first motion estimate."""
+
+    T_world_scan: np.ndarray
+    T_world_ref: np.ndarray
+    T_ref_stamp: np.ndarray
+    registered: bool
+    T_world_first: np.ndarray | None = None
 
 
 class Odometry:
@@ -26,6 +45,7 @@ class Odometry:
 
     def __init__(self, cfg: SlamConfig):
         o = cfg.odometry
+        self.cfg = cfg
         self.voxel_size_m = cfg.voxel_size_m()
         self.max_range_m = cfg.data.max_range_m
         self._map = kp._VoxelHashMap(voxel_size=self.voxel_size_m, max_distance=self.max_range_m,
@@ -33,36 +53,105 @@ class Odometry:
         self._registration = kp._Registration(max_num_iterations=o.max_num_iterations,
                                               convergence_criterion=o.convergence_criterion,
                                               max_num_threads=o.max_num_threads)
-        self._threshold = kp._AdaptiveThreshold(initial_threshold=o.initial_threshold_m,
-                                                min_motion_th=o.min_motion_m,
-                                                max_range=self.max_range_m)
+        self._new_threshold()
         # kiss-icp's range crop (C++, parallel) with its deskew switched off: ours runs before.
         self._crop = kp._Preprocessor(cfg.data.max_range_m, cfg.data.min_range_m, False,
                                       o.max_num_threads)
         self.last_pose = np.eye(4)
         self.last_delta = np.eye(4)  # T_prev_curr, the constant-velocity prediction
+        self.n_registered = 0
+        self._last_ref_s = 0.0  # reference instant (from the stamp) of the last registered scan
+        self._first_ref_s = 0.0
+        # Model deviations fed to the adaptive threshold since the last take_deviations(): its
+        # state is not exposed by kiss-icp, so a checkpoint appends them to a file and a resumed
+        # run replays them all to rebuild it exactly.
+        self._deviations: list[np.ndarray] = []
 
-    def step(self, points: np.ndarray) -> np.ndarray | None:
-        """Register a deskewed scan (N,3), cropped here to the configured range, and return
-        T_world_scan; None (and no state change) when no point lies in range."""
-        cropped = self._crop._preprocess(_vec(points), np.zeros(0), np.eye(4))
-        if len(cropped) == 0:
+    def _new_threshold(self) -> None:
+        o = self.cfg.odometry
+        self._threshold = kp._AdaptiveThreshold(initial_threshold=o.initial_threshold_m,
+                                                min_motion_th=o.min_motion_m,
+                                                max_range=self.max_range_m)
+
+    def register(self, points: np.ndarray, selected: bool = False) -> np.ndarray | None:
+        """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
+        (and no state change) when no point lies in range. selected: the points are already
+        cropped and one per voxel of half the voxel size (see DeskewedScan)."""
+        if selected:
+            frame_down = _vec(points)
+        else:
+            cropped = self._crop._preprocess(_vec(points), np.zeros(0), np.eye(4))
+            frame_down = kp._voxel_down_sample(cropped, self.voxel_size_m * 0.5)
+        if len(frame_down) == 0:
             return None
-        frame_down = kp._voxel_down_sample(cropped, self.voxel_size_m * 0.5)
         source = kp._voxel_down_sample(frame_down, self.voxel_size_m * 1.5)
         sigma = self._threshold._compute_threshold()
         initial_guess = self.last_pose @ self.last_delta
         new_pose = self._registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
-        self._threshold._update_model_deviation(
-            model_deviation=np.linalg.inv(initial_guess) @ new_pose)
+        deviation = np.linalg.inv(initial_guess) @ new_pose
+        self._threshold._update_model_deviation(model_deviation=deviation)
+        self._deviations.append(deviation)
         self._map._update(frame_down, new_pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ new_pose
         self.last_pose = new_pose
         return new_pose
 
+    def step(self, scan: DeskewedScan) -> OdometryResult:
+        """Register a deskewed scan and return its pose at the stamp."""
+        T_world_ref = self.register(scan.points, scan.selected)
+        if T_world_ref is None:
+            # The prediction is of the sweep's middle, like every registration: move it to the
+            # stamp with the last registered scan's offset.
+            T_world_ref = self.predict()
+            T_ref_stamp = interpolate(np.eye(4), self.last_delta,
+                                      -self._last_ref_s / scan.period_s)
+            return OdometryResult(T_world_ref @ T_ref_stamp, T_world_ref, T_ref_stamp, False)
+        T_ref_stamp = scan.T_ref_stamp(self.last_delta)
+        first = None
+        self.n_registered += 1
+        if self.n_registered == 1:
+            self._first_ref_s = scan.ref_s
+        elif self.n_registered == 2 and self._first_ref_s:
+            # Frame 0 was registered before any velocity was known, so its pose is of its
+            # sweep's middle (the world origin). With the first motion now estimated, move it to
+            # its stamp like every other frame.
+            first = interpolate(np.eye(4), self.last_delta, -self._first_ref_s / scan.period_s)
+        self._last_ref_s = scan.ref_s
+        return OdometryResult(T_world_ref @ T_ref_stamp, T_world_ref, T_ref_stamp, True, first)
+
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next pose; advances the state without a scan."""
         self.last_pose = self.last_pose @ self.last_delta
         return self.last_pose
+
+    # -- checkpoint / resume -------------------------------------------------------------------
+
+    def take_deviations(self) -> np.ndarray:
+        """(K,4,4) model deviations since the last call (for the checkpoint's append-only log)."""
+        out = np.stack(self._deviations) if self._deviations else np.zeros((0, 4, 4))
+        self._deviations = []
+        return out
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Poses, counters and the local map's points (the deviations go by take_deviations)."""
+        return {"last_pose": self.last_pose, "last_delta": self.last_delta,
+                "map_points": np.asarray(self._map._point_cloud()),
+                "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s])}
+
+    def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
+        """Continue from state(): the map's points go back into their voxels, the adaptive
+        threshold replays every model deviation of the run so far."""
+        self.last_pose = np.array(state["last_pose"])
+        self.last_delta = np.array(state["last_delta"])
+        self._map._clear()
+        if len(state["map_points"]):
+            self._map._add_points(_vec(np.asarray(state["map_points"], np.float64)))
+        self._new_threshold()
+        for dev in deviations:
+            self._threshold._update_model_deviation(model_deviation=dev)
+        self._deviations = []
+        n, last_ref, first_ref = state["counters"]
+        self.n_registered = int(n)
+        self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)

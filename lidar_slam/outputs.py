@@ -12,7 +12,8 @@ import numpy as np
 from lidar_slam.config import SlamConfig, dump_config
 from lidar_slam.geometry import inverse
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
-from lidar_slam.mapping import build_map, write_ply
+from lidar_slam.keyframes import write_atomic
+from lidar_slam.mapping import write_map
 from lidar_slam.pipeline import RunResult
 
 
@@ -63,9 +64,11 @@ class OdometryStream:
     line reaches the file as one write), so even a killed run (SIGKILL, out of memory) keeps its
     odometry. write_run rewrites the file from the result at the end, with the same content."""
 
-    def __init__(self, out_dir: Path):
+    def __init__(self, out_dir: Path, done: list[np.ndarray] = ()):
         self.path = out_dir / "odometry_kitti.txt"
         self._fh = open(self.path, "w", buffering=1)
+        for T in done:  # a resumed run: the frames of its checkpoint
+            self.append(T)
 
     def append(self, T_world_scan: np.ndarray) -> None:
         self._fh.write(" ".join(f"{v:.9e}" for v in T_world_scan[:3, :4].ravel()) + "\n")
@@ -80,21 +83,23 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     out_dir.mkdir(parents=True, exist_ok=True)
     dump_config(cfg, out_dir / "config.yaml")
     n = len(result.indices)
-    summary: dict = {"frames": n, "keyframes": len(result.keyframes)}
+    summary: dict = {"frames": n, "keyframes": len(result.store)}
     if n:
         # World = the first frame at its stamp: frame 0 is the identity in every pose file.
         poses = result.final_poses()
         anchor = inverse(poses[0])
         poses = anchor @ poses
         odom = inverse(result.odom_poses[0]) @ np.stack(result.odom_poses)
+        # Exactly the identity: the products above leave round-off there (1e-19) that depends on
+        # memory alignment, and a re-run must write the same bytes.
+        poses[0] = odom[0] = np.eye(4)
         stamps = np.asarray(result.stamps_s)
         write_kitti_poses(out_dir / "poses_kitti.txt", poses)
         write_tum(out_dir / "poses_tum.txt", stamps, poses)
         write_kitti_poses(out_dir / "odometry_kitti.txt", odom)
-        pts, inten = build_map(result.keyframes, {k: anchor @ T for k, T in result.kf_poses.items()},
-                               cfg.map.voxel_size_m)
-        write_ply(out_dir / "map.ply", pts, inten)
-        summary["map_points"] = int(len(pts))
+        summary["map_points"] = write_map(
+            out_dir / "map.ply", result.store,
+            {k: anchor @ T for k, T in result.kf_poses.items()}, cfg.map.voxel_size_m)
         summary["path_length_m"] = path_length_m(poses)
         if ground_truth is not None:
             gt = ground_truth[np.asarray(result.indices)]
@@ -109,11 +114,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["fps"] = n / wall_s if wall_s > 0 else 0.0
     summary["odometry_ms_per_frame"] = 1e3 * result.seconds["odometry"] / max(n, 1)
     summary["loops_ms_per_frame"] = 1e3 * result.seconds["loops"] / max(n, 1)
+    if result.loop_update_s:
+        summary["backend_ms_per_loop_max"] = 1e3 * max(s for _, s in result.loop_update_s)
     summary["peak_rss_mb"] = peak_rss_mb()
     summary["skipped_empty_scans"] = result.skipped_empty
-    summary["interrupted"] = result.interrupted
-    if result.error:
-        summary["stopped_by_error"] = result.error
     summary.update(extra or {})
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

@@ -1,6 +1,6 @@
 """The SLAM pipeline in flow order:
-reader -> deskew -> crop + odometry -> keyframe? -> scan-context query -> ICP verify -> pose graph
--> map / metrics.
+reader -> deskew -> odometry -> keyframe? -> (loop worker: scan-context query -> ICP verify)
+-> back-end (incremental pose graph; full solve at the end) -> map / metrics.
 """
 
 from __future__ import annotations
@@ -9,18 +9,16 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from lidar_slam.config import SlamConfig
-from lidar_slam.errors import LidarSlamError
-from lidar_slam.frontend.crop import range_mask
-from lidar_slam.frontend.deskew import deskew
-from lidar_slam.frontend.downsample import voxel_first_indices
-from lidar_slam.geometry import interpolate, inverse, transform_points
-from lidar_slam.keyframes import KeyframeSelector
-from lidar_slam.odometry import Odometry
-from lidar_slam.types import Keyframe, Scan
+from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
+from lidar_slam.geometry import inverse, transform_points
+from lidar_slam.keyframes import KeyframeSelector, KeyframeStore
+from lidar_slam.odometry import Odometry, OdometryResult
+from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)
 
@@ -29,151 +27,146 @@ log = logging.getLogger(__name__)
 class RunResult:
     """Everything a run computed, frame by frame (lists grow as scans are processed)."""
 
+    store: KeyframeStore  # keyframe clouds (on disk) and odometry poses
     indices: list[int] = field(default_factory=list)
     stamps_s: list[float] = field(default_factory=list)
     odom_poses: list[np.ndarray] = field(default_factory=list)  # T_world_scan before loops
     frame_kf: list[int] = field(default_factory=list)  # keyframe each frame hangs off
-    keyframes: list[Keyframe] = field(default_factory=list)
     kf_poses: dict[int, np.ndarray] = field(default_factory=dict)  # final T_world_kf
     loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
     skipped_empty: int = 0
-    interrupted: bool = False
-    error: str | None = None  # a bad input that stopped the run early
-    internal_error: str | None = None  # traceback of a bug that stopped the run early
     graph: object | None = None  # the keyframe PoseGraph when loops are on (for graph.g2o)
     seconds: dict[str, float] = field(default_factory=lambda: {"odometry": 0.0, "loops": 0.0})
+    loop_update_s: list = field(default_factory=list)  # (keyframe, s) of each loop's update
 
     def final_poses(self) -> np.ndarray:
         """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""
         out = np.empty((len(self.odom_poses), 4, 4))
-        kf_by_id = {kf.id: kf for kf in self.keyframes}
         for i, (T_odom, kf_id) in enumerate(zip(self.odom_poses, self.frame_kf)):
-            kf = kf_by_id[kf_id]
-            out[i] = self.kf_poses[kf_id] @ inverse(kf.T_world_kf_odom) @ T_odom
+            T_kf_odom = self.store.T_world_kf_odom(kf_id)
+            out[i] = self.kf_poses[kf_id] @ inverse(T_kf_odom) @ T_odom
         return out
 
 
 class Pipeline:
-    """Calls the stages in flow order for one scan at a time."""
+    """Calls the stages in flow order for one scan at a time; finish() ends the run."""
 
-    def __init__(self, cfg: SlamConfig, viz=None):
+    def __init__(self, cfg: SlamConfig, run_dir: str | Path | None = None, viz=None,
+                 resume: bool = False):
         self.cfg = cfg
+        self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m())
         self.odometry = Odometry(cfg)
         self.keyframes = KeyframeSelector(cfg.keyframes)
-        self.result = RunResult()
-        self.loop_closer = None
+        # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
+        # the run folder's store (lidar_slam.checkpoint cuts it back to the checkpoint).
+        self.result = RunResult(KeyframeStore(None if run_dir is None
+                                              else Path(run_dir) / "keyframes", keep=resume))
+        self.backend = self.loops = None
         if cfg.loop.enabled:
-            from lidar_slam.loop.closer import LoopCloser
+            from lidar_slam.backend.slam_backend import Backend
+            from lidar_slam.loop.closer import LoopDetector
+            from lidar_slam.loop.worker import LoopWorker
 
-            self.loop_closer = LoopCloser(cfg)
-            self.result.graph = self.loop_closer.graph
+            self.backend = Backend(cfg.backend)
+            self.loops = LoopWorker(LoopDetector(cfg, self.result.store),
+                                    inline=cfg.loop.worker == "inline")
+            self.result.graph = self.backend.graph
         self.viz = viz
-        self._last_stamp: float | None = None
-        self._last_dt = 0.1
-        self._last_ref_s = 0.0  # mid-sweep offset from the stamp of the last registered scan
-        self._first_ref_s = 0.0  # the same for frame 0, whose pose is fixed once motion is known
+        self.loops_applied_upto = -1  # keyframes whose loop results are in the graph
 
     def process(self, scan: Scan) -> None:
         """Run one scan through every stage."""
         r, t0 = self.result, time.perf_counter()
-        if self._last_stamp is not None and scan.stamp_s > self._last_stamp:
-            dt = scan.stamp_s - self._last_stamp
-        else:
-            dt = self._last_dt
-        points, ref_s = scan.points, 0.0
-        if self.cfg.data.deskew and scan.point_times is not None and len(points):
-            # Deskew (once) to the middle of the sweep: the correction, and with it the effect of
-            # a wrong velocity guess, is half what deskewing to an end of the sweep gives; that
-            # feedback makes start-referenced deskew diverge on fast sparse scans.
-            times = scan.point_times
-            ref_s = 0.5 * (float(times.min()) + float(times.max()))
-            points = deskew(points, times - ref_s, self.odometry.last_delta, self._last_dt)
-        T_world_ref = self.odometry.step(points)  # range-cropped inside, as kiss-icp does
-        if T_world_ref is None:
+        deskewed = self.deskew(scan, self.odometry.last_delta)
+        odom = self.odometry.step(deskewed)
+        if not odom.registered:
             log.warning("%s: empty scan after cropping, skipped (pose predicted)", scan.source)
             r.skipped_empty += 1
-            # The prediction is of the sweep's middle, like every registration: move it to the
-            # stamp with the last scan's offset, and keep the clock going so that the next scan's
-            # dt spans one period, not two.
-            T_pred = self.odometry.predict()
-            if self._last_ref_s != 0.0:
-                T_pred = T_pred @ interpolate(np.eye(4), self.odometry.last_delta,
-                                              -self._last_ref_s / dt)
-            self._last_dt, self._last_stamp = dt, scan.stamp_s
-            self._append(scan, T_pred)
-            return
-        T_ref_stamp = np.eye(4)
-        if ref_s != 0.0:  # the pose (and the cloud) refer to the stamp, not the mid-sweep
-            T_ref_stamp = interpolate(np.eye(4), self.odometry.last_delta, -ref_s / dt)
-        T_world_scan = T_world_ref @ T_ref_stamp
-        if len(r.odom_poses) == 1 and self._first_ref_s:
-            # Frame 0 was registered before any velocity was known, so its pose is of its
-            # sweep's middle (the world origin). With the first motion now estimated, move it to
-            # its stamp like every other frame. Keyframe 0 stays at the middle, where its cloud is.
-            r.odom_poses[0] = interpolate(np.eye(4), self.odometry.last_delta,
-                                          -self._first_ref_s / dt)
-        if not r.odom_poses:
-            self._first_ref_s = ref_s
-        self._last_dt, self._last_stamp, self._last_ref_s = dt, scan.stamp_s, ref_s
+        if odom.T_world_first is not None:
+            r.odom_poses[0] = odom.T_world_first
         r.seconds["odometry"] += time.perf_counter() - t0
-        is_kf = self.keyframes.is_keyframe(T_world_scan)
-        if is_kf:
-            self._add_keyframe(scan, points, T_ref_stamp, T_world_scan)
-        self._append(scan, T_world_scan)
-        if self.viz is not None:
-            keep = range_mask(points, self.cfg.data.min_range_m, self.cfg.data.max_range_m)
-            self.viz.log_scan(self, scan, transform_points(inverse(T_ref_stamp), points[keep]),
-                              T_world_scan, is_kf)
-
-    def _append(self, scan: Scan, T_world_scan: np.ndarray) -> None:
-        r = self.result
-        if not r.keyframes:  # an empty first scan still needs a keyframe to hang off
-            self._add_keyframe(scan, np.zeros((0, 3)), np.eye(4), T_world_scan)
+        is_kf = odom.registered and self.keyframes.is_keyframe(odom.T_world_scan)
+        if is_kf or len(r.store) == 0:  # an empty first scan still needs a keyframe
+            self._add_keyframe(deskewed, odom)
         r.indices.append(scan.index)
         r.stamps_s.append(scan.stamp_s)
-        r.odom_poses.append(T_world_scan)
-        r.frame_kf.append(r.keyframes[-1].id)
+        r.odom_poses.append(odom.T_world_scan)
+        r.frame_kf.append(len(r.store) - 1)
+        if self.viz is not None:
+            self.viz.log_scan(self, scan, transform_points(inverse(odom.T_ref_stamp),
+                                                           deskewed.points), odom.T_world_scan,
+                              is_kf)
 
-    def _add_keyframe(self, scan: Scan, points: np.ndarray, T_ref_stamp: np.ndarray,
-                      T_world_scan: np.ndarray) -> None:
-        """Keyframe cloud: points (deskewed, in the odometry's reference frame) within the map
-        range, one per voxel, moved to the stamp frame, with their intensity."""
-        r = self.result
-        max_range_m = min(self.cfg.data.max_range_m, self.cfg.map.max_range_m)
-        near = np.flatnonzero(range_mask(points, self.cfg.data.min_range_m, max_range_m))
-        idx = near[voxel_first_indices(points[near], self.cfg.keyframes.cloud_voxel_m)]
-        pts = points[idx]
-        if not np.array_equal(T_ref_stamp, np.eye(4)):  # deskewed to mid-sweep: move to stamp
-            pts = transform_points(inverse(T_ref_stamp), pts)
-        inten = scan.intensity[idx] if scan.intensity is not None else None
-        kf = Keyframe(len(r.keyframes), scan.index, T_world_scan, pts.astype(np.float32),
-                      None if inten is None else inten.astype(np.float32))
-        r.keyframes.append(kf)
-        r.kf_poses[kf.id] = T_world_scan
-        if self.loop_closer is not None:  # empty clouds too: the graph needs every keyframe
+    def _add_keyframe(self, deskewed: DeskewedScan, odom: OdometryResult) -> None:
+        """Keyframe cloud (one deskewed point per voxel within the map range, at the stamp) to
+        the store; its node to the back-end and its loop search to the worker."""
+        c = self.cfg
+        pts, inten = deskewed.cloud(c.keyframes.cloud_voxel_m, c.data.min_range_m,
+                                    min(c.data.max_range_m, c.map.max_range_m))
+        if odom.registered:
+            pts = transform_points(inverse(odom.T_ref_stamp), pts)
+        else:
+            pts, inten = pts[:0], None
+        kf = self.result.store.add(deskewed.scan.index, odom.T_world_scan, pts, inten)
+        if self.backend is not None:
             t0 = time.perf_counter()
-            r.loops.extend(self.loop_closer.add_keyframe(kf))
-            r.kf_poses.update(self.loop_closer.kf_poses())
+            self.backend.add_keyframe(kf.id, kf.T_world_kf_odom)
+            self.loops.submit(kf.id)
+            self._apply_loops(kf.id - c.loop.collect_lag_keyframes)
+            self.result.seconds["loops"] += time.perf_counter() - t0
+
+    def _apply_loops(self, upto: int) -> None:
+        """Collect the loop results of keyframes <= upto (in order) and update the back-end."""
+        for res in self.loops.collect(upto):
+            self.result.loops.extend(res.records)
+            if res.constraint is not None:
+                self.backend.add_loop(res.constraint)
+            self.loops_applied_upto = res.kf_id
+        self.backend.update()
+
+    def current_kf_poses(self) -> dict[int, np.ndarray]:
+        """Best current T_world_kf of every keyframe (incremental estimate, or odometry)."""
+        if self.backend is not None:
+            return self.backend.poses()
+        table = self.result.store.table()
+        return {int(k): T for k, T in zip(table["id"], table["T"])}
+
+    def finish(self) -> RunResult:
+        """Wait for the loop worker, solve the full graph, and return the run's result."""
+        r = self.result
+        if self.backend is not None:
+            t0 = time.perf_counter()
+            try:
+                self._apply_loops(len(r.store))
+            finally:
+                self.loops.close()
+            for kf_id in range(len(self.backend), len(r.store)):  # stopped mid-keyframe
+                self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
+            r.kf_poses = self.backend.finish()
+            r.loop_update_s = self.backend.loop_update_s
             r.seconds["loops"] += time.perf_counter() - t0
+        else:
+            r.kf_poses = self.current_kf_poses()
+        return r
+
+    def close(self) -> None:
+        """Stop the loop worker and release the keyframe store."""
+        if self.loops is not None:
+            self.loops.close()
+        self.result.store.close()
 
 
-def run(scans: Iterable[Scan], cfg: SlamConfig,
-        on_scan: Callable[[Scan, RunResult], None] | None = None, viz=None) -> RunResult:
-    """Process scans in order; Ctrl-C stops early and keeps everything computed so far."""
-    pipe = Pipeline(cfg, viz)
+def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = None,
+        on_scan: Callable[[Scan, RunResult], None] | None = None) -> RunResult:
+    """Process scans in order and return the result (its keyframe store stays open); errors
+    propagate: the CLI keeps the frames computed so far by driving Pipeline itself."""
+    pipe = Pipeline(cfg, run_dir)
     try:
         for scan in scans:
             pipe.process(scan)
             if on_scan is not None:
                 on_scan(scan, pipe.result)
-    except KeyboardInterrupt:
-        log.warning("interrupted: keeping the %d frames processed so far", len(pipe.result.indices))
-        pipe.result.interrupted = True
-    except LidarSlamError as exc:
-        pipe.result.error = str(exc)
-    except Exception:  # a bug must not cost the frames already computed: keep them, report it
-        import traceback
-
-        pipe.result.internal_error = traceback.format_exc()
-        log.error("internal error after %d frames", len(pipe.result.indices))
-    return pipe.result
+        return pipe.finish()
+    finally:
+        if pipe.loops is not None:
+            pipe.loops.close()

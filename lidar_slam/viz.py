@@ -49,32 +49,36 @@ class RerunViz:
         odom = np.stack(result.odom_poses)[:, :3, 3]
         rec.log("world/odometry", rr.LineStrips3D([odom], colors=[200, 80, 80], radii=0.05))
         if is_keyframe:
-            kf = result.keyframes[-1]
+            kf = result.store.get(len(result.store) - 1)
             rec.log(f"world/map/kf_{kf.id:06d}",
                     rr.Points3D(transform_points(kf.T_world_kf_odom, kf.points), radii=0.04,
                                 colors=[150, 150, 150]))
-            kf_xyz = np.stack([k.T_world_kf_odom[:3, 3] for k in result.keyframes])
+            kf_xyz = result.store.table()["T"][:, :3, 3]
             rec.log("world/keyframes", rr.Points3D(kf_xyz, radii=0.15, colors=[60, 120, 255]))
         accepted = [row for row in result.loops if row.accepted]
         if len(accepted) != self._n_loops:
             self._n_loops = len(accepted)
-            self._log_loops(accepted, result.kf_poses)
+            self._log_loops(accepted, pipe.current_kf_poses())
 
     def _log_loops(self, accepted, kf_poses) -> None:
         strips = [np.stack([kf_poses[row.query_kf][:3, 3], kf_poses[row.match_kf][:3, 3]])
                   for row in accepted]
         self.rec.log("world/loops", rr.LineStrips3D(strips, colors=[0, 220, 0], radii=0.1))
 
-    def finish(self, result) -> None:
-        """Log the final (optimised) trajectory and map, then flush the recording."""
+    def finish(self, result, map_path: Path) -> None:
+        """Log the final (optimised) trajectory and the written map, then flush the recording."""
         if result.odom_poses:
+            from lidar_slam.geometry import inverse
+            from lidar_slam.mapping import read_ply
+
             poses = result.final_poses()
+            anchor = inverse(poses[0])  # the written files' world: frame 0 at its stamp
+            poses = anchor @ poses
             self.rec.log("world/optimised", rr.LineStrips3D([poses[:, :3, 3]], colors=[0, 200, 255],
                                                             radii=0.06), static=True)
-            cloud = np.concatenate([transform_points(result.kf_poses[kf.id], kf.points)
-                                    for kf in result.keyframes])
-            cloud, _ = voxel_downsample(cloud, SCAN_VOXEL_M)
+            cloud, _ = voxel_downsample(read_ply(map_path)[0], SCAN_VOXEL_M)
             self.rec.log("world/optimised_map", rr.Points3D(cloud, radii=0.04), static=True)
-            self._log_loops([row for row in result.loops if row.accepted], result.kf_poses)
+            self._log_loops([row for row in result.loops if row.accepted],
+                            {k: anchor @ T for k, T in result.kf_poses.items()})
         self.rec.flush()
         self.rec.disconnect()

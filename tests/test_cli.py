@@ -89,7 +89,9 @@ def test_empty_first_scan_with_loops_on(tmp_path, kitti16):
     assert summary["frames"] == 6 and summary["skipped_empty_scans"] == 1
 
 
-def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16, monkeypatch):
+def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16):
+    """pipeline.run raises; a caller that drives Pipeline itself (as the CLI does) keeps every
+    frame computed before the interruption."""
     from lidar_slam import pipeline
     from lidar_slam.config import load_config
     from lidar_slam.io.sources import open_source
@@ -102,10 +104,17 @@ def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16, monkeypatch):
             yield scan
         raise KeyboardInterrupt
 
-    cfg = load_config(overrides={"loop": {"enabled": False}})
-    result = pipeline.run(scans_then_ctrl_c(), cfg)
-    assert result.interrupted and len(result.indices) == 5
-    write_run(tmp_path, result, cfg, src.ground_truth, 1.0)
+    cfg = load_config()
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run(scans_then_ctrl_c(), cfg)
+    pipe = pipeline.Pipeline(cfg, tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        for scan in scans_then_ctrl_c():
+            pipe.process(scan)
+    result = pipe.finish()
+    assert len(result.indices) == 5
+    write_run(tmp_path, result, cfg, src.ground_truth, 1.0, extra={"interrupted": True})
+    pipe.close()
     assert len(read_kitti_poses(tmp_path / "poses_kitti.txt")) == 5
     assert json.loads((tmp_path / "summary.json").read_text())["interrupted"] is True
 
@@ -257,11 +266,13 @@ def test_unwritable_outputs_are_one_line(tmp_path, kitti16):
 
 
 def test_a_bug_mid_run_keeps_the_frames_so_far(tmp_path, kitti16, monkeypatch):
-    from lidar_slam import pipeline
-    from lidar_slam.config import load_config
-    from lidar_slam.io.sources import open_source
+    """pipeline.Pipeline raises; the CLI writes the frames so far, the traceback to a file, and
+    exits 1 with one line."""
+    from typer.testing import CliRunner
 
-    src = open_source(kitti16)
+    from lidar_slam import pipeline
+    from lidar_slam.cli import app
+
     calls = {"n": 0}
     real = pipeline.Pipeline.process
 
@@ -272,8 +283,11 @@ def test_a_bug_mid_run_keeps_the_frames_so_far(tmp_path, kitti16, monkeypatch):
         return real(self, scan)
 
     monkeypatch.setattr(pipeline.Pipeline, "process", flaky)
-    result = pipeline.run(src.scans(0, 8), load_config(overrides={"loop": {"enabled": False}}))
-    assert len(result.indices) == 3 and "ZeroDivisionError" in result.internal_error
+    out = tmp_path / "o"
+    res = CliRunner().invoke(app, ["run", str(kitti16), "--out", str(out), "--n-scans", "8"])
+    assert res.exit_code == 1
+    assert len(read_kitti_poses(out / "poses_kitti.txt")) == 3
+    assert "ZeroDivisionError" in (out / "error_traceback.txt").read_text()
 
 
 def test_eval_empty_pose_file_is_one_line(tmp_path):
@@ -310,3 +324,70 @@ def test_more_bad_inputs_are_one_line(tmp_path, kitti16):
     np.savetxt(times, np.c_[stamps, stamps])
     assert_one_line_error(lidar_slam("run", seq, "--out", tmp_path / "o2"), "times.txt",
                           "one stamp per line")
+
+
+SAMPLE = REPO / "sample_scans"
+
+
+def test_out_folder_rule(tmp_path):
+    """An --out that holds files is refused unless --overwrite (which deletes only our files)
+    or --resume; both together is an error."""
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep me")
+    (out / "summary.json").write_text("{}")
+    args = ("run", SAMPLE, "--out", out, "--n-scans", 3, "--no-loops")
+    assert_one_line_error(lidar_slam(*args), "already holds files", "--overwrite")
+    assert_one_line_error(lidar_slam(*args, "--overwrite", "--resume"), "exclude")
+    assert lidar_slam(*args, "--overwrite").returncode == 0
+    assert (out / "mine.txt").read_text() == "keep me"
+    assert json.loads((out / "summary.json").read_text())["frames"] == 3
+    # --resume on a missing folder starts fresh; with another config it is refused
+    assert lidar_slam("run", SAMPLE, "--out", tmp_path / "new", "--n-scans", 3, "--no-loops",
+                      "--resume").returncode == 0
+    assert_one_line_error(lidar_slam("run", SAMPLE, "--out", tmp_path / "new", "--n-scans", 3,
+                                     "--resume"), "cannot resume", "config")
+
+
+def test_two_runs_write_identical_poses(tmp_path):
+    """Loop detection runs on a worker thread; its results are applied at fixed keyframes, so
+    runs do not depend on timing (sample_scans: loops accepted)."""
+    for name in ("a", "b"):
+        assert lidar_slam("run", SAMPLE, "--out", tmp_path / name).returncode == 0
+    a, b = ((tmp_path / n / "poses_kitti.txt").read_bytes() for n in "ab")
+    assert a == b
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["loops_accepted"] >= 3
+
+
+def test_resume_after_sigkill_matches_an_uninterrupted_run(tmp_path):
+    """A run killed with SIGKILL at about half way and resumed with --resume ends within 1 mm /
+    0.01 deg of an uninterrupted run on every frame, with the same accepted loops."""
+    import signal
+
+    from lidar_slam.geometry import inverse, rotation_angle_deg
+
+    cfg = tmp_path / "ck.yaml"
+    cfg.write_text("checkpoint:\n  every_keyframes: 5\n")
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    assert lidar_slam("run", SAMPLE, "--out", full, "--config", cfg).returncode == 0
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(SAMPLE), "--out",
+                             str(killed), "--config", str(cfg)], stderr=subprocess.DEVNULL)
+    _wait_for_odometry_lines(proc, killed, 36)  # of 71
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    assert not (killed / "poses_kitti.txt").exists()
+    res = lidar_slam("run", SAMPLE, "--out", killed, "--config", cfg, "--resume")
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((killed / "summary.json").read_text())
+    assert summary["resumed_at_frame"] > 0 and summary["frames"] == 71
+    A, B = read_kitti_poses(full / "poses_kitti.txt"), read_kitti_poses(killed / "poses_kitti.txt")
+    assert len(A) == len(B) == 71
+    for Ta, Tb in zip(A, B):
+        d = inverse(Ta) @ Tb
+        assert np.linalg.norm(d[:3, 3]) < 1e-3 and rotation_angle_deg(d) < 0.01
+
+    def accepted(run):
+        rows = (run / "loops.csv").read_text().splitlines()[1:]
+        return [r.split(",")[:2] for r in rows if r.split(",")[6] == "1"]
+
+    assert accepted(killed) == accepted(full) and len(accepted(full)) >= 3

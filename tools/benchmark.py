@@ -102,7 +102,7 @@ def command(system: str, seq: Sequence, out: Path) -> list[str]:
     if system == "lidar-slam":
         cfg = ["--config", str(seq.config)] if seq.config else []
         return [sys.executable, "-m", "lidar_slam.cli", "run", str(seq.path), "--out", str(out),
-                *rng, *cfg]
+                "--overwrite", *rng, *cfg]
     if system == "kiss-icp":
         # --deskew: per-point times go to register_frame when the scans carry them, as
         # kiss-icp's own pipeline does (its deskew is on by default).

@@ -56,7 +56,7 @@ def main() -> None:
     stock_cmd = [sys.executable, str(HERE / "stock_kiss_icp.py"), args.data, str(tmp / "stock.txt"),
                  *rng] + (["--deskew"] if args.deskew else [])
     ours_cmd = [sys.executable, "-m", "lidar_slam.cli", "run", args.data, "--out", str(tmp / "ours"),
-                "--no-loops", *rng] + (["--config", args.config] if args.config else [])
+                "--overwrite", "--no-loops", *rng] + (["--config", args.config] if args.config else [])
     runs: dict[str, list[tuple[float, float]]] = {"stock kiss-icp": [], "lidar-slam": []}
     for _ in range(args.repeats):  # interleaved so both see the same machine load
         runs["stock kiss-icp"].append(timed(stock_cmd))

@@ -16,7 +16,7 @@ shift || true
 case "$cmd" in
   demo)
     "$VENV/bin/python" -m pip install -q -e .
-    "$VENV/bin/lidar-slam" run sample_scans --out runs/sample "$@"
+    "$VENV/bin/lidar-slam" run sample_scans --out runs/sample --overwrite "$@"
     ;;
   test)
     "$VENV/bin/python" -m pip install -q -e ".[test]"

@@ -88,3 +88,42 @@ def solve(dims: Dims, priors: Iterable[PriorFactor], betweens: Iterable[BetweenF
               initial_error, final_error, seconds)
     return SolveResult(_from_values(result, dims), initial_error, final_error,
                        int(optimizer.iterations()), seconds)
+
+
+class Incremental:
+    """gtsam ISAM2 over a growing graph: factors and initial values go in as they arrive, one
+    update() re-solves only the part of the Bayes tree a new factor touches (a loop: the cliques
+    along it), so the cost of a keyframe or a loop does not grow with the graph."""
+
+    def __init__(self, dims: Dims, relinearize_threshold: float = 0.01, relinearize_skip: int = 1):
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(relinearize_threshold)
+        params.relinearizeSkip = relinearize_skip
+        self.dims = dims
+        self.isam = gtsam.ISAM2(params)
+        self._graph = gtsam.NonlinearFactorGraph()
+        self._values = gtsam.Values()
+
+    def add(self, priors: Iterable[PriorFactor], betweens: Iterable[BetweenFactor],
+            initial: Mapping[int, np.ndarray]) -> None:
+        """Queue new factors and the initial poses of new nodes for the next update()."""
+        graph, values = _build(self.dims, priors, betweens, initial)
+        self._graph.push_back(graph)
+        self._values.insert(values)
+
+    def update(self, extra_iterations: int = 0) -> None:
+        """Fold the queued factors in; extra_iterations more ISAM2 steps (after a loop)."""
+        self.isam.update(self._graph, self._values)
+        for _ in range(extra_iterations):
+            self.isam.update()
+        self._graph = gtsam.NonlinearFactorGraph()
+        self._values = gtsam.Values()
+
+    def estimate(self) -> dict[int, np.ndarray]:
+        """Current estimate of every node."""
+        return _from_values(self.isam.calculateEstimate(), self.dims)
+
+    def pose(self, key: int) -> np.ndarray:
+        """Current estimate of one node (cost independent of the graph size)."""
+        at = self.isam.calculateEstimatePose3 if self.dims == 3 else self.isam.calculateEstimatePose2
+        return np.asarray(at(key).matrix(), dtype=np.float64)

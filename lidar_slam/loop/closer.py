@@ -1,8 +1,6 @@
-"""Loop closing for the pipeline: keyframe -> scan-context query -> ICP verify -> pose graph.
+"""Loop detection for the pipeline: keyframe -> scan-context query -> ICP verify -> constraint.
 
-Every keyframe becomes a pose-graph node joined to the previous one by its odometry; an accepted
-loop adds a Huber-robust edge and the graph is re-optimised, which moves every keyframe (and,
-through them, every frame).
+The back-end (lidar_slam.backend.slam_backend) turns accepted constraints into graph edges.
 """
 
 from __future__ import annotations
@@ -12,12 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar_slam.backend.pose_graph import PoseGraph
 from lidar_slam.config import SlamConfig
 from lidar_slam.geometry import relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import verify
-from lidar_slam.types import Keyframe
+from lidar_slam.keyframes import KeyframeStore
+from lidar_slam.types import LoopConstraint
 
 log = logging.getLogger(__name__)
 
@@ -39,67 +37,73 @@ class LoopRecord:
     T_match_query: np.ndarray | None
 
 
-class LoopCloser:
-    """Owns the scan-context index, the verification and the pose graph of the keyframes."""
+@dataclass(frozen=True)
+class LoopResult:
+    """What loop detection found for one query keyframe: every verified candidate (loops.csv
+    rows) and the accepted constraint, if any."""
 
-    def __init__(self, cfg: SlamConfig):
+    kf_id: int
+    records: tuple[LoopRecord, ...]
+    constraint: LoopConstraint | None
+
+
+class LoopDetector:
+    """Scan-context query and ICP verification of each new keyframe against the older ones.
+
+    It reads keyframes from the store and never touches the pose graph; everything it uses for a
+    query keyframe k (its descriptor, submaps of keyframes <= k at their odometry poses) is fixed
+    once k is stored, so its results do not depend on when it runs.
+    """
+
+    def __init__(self, cfg: SlamConfig, store: KeyframeStore):
         self.cfg = cfg
+        self.store = store
         self.index = ScanContextIndex(cfg.loop.scan_context)
-        self.graph = PoseGraph()
-        self.keyframes: list[Keyframe] = []
-        self._poses: dict[int, np.ndarray] = {}
 
-    def kf_poses(self) -> dict[int, np.ndarray]:
-        """Current estimate T_world_kf of every keyframe."""
-        return self._poses
+    def reindex(self, upto: int) -> None:
+        """Index keyframes 0..upto from the store into a fresh detector, as process() would
+        have (resuming a run)."""
+        for kf_id in range(upto + 1):
+            pts = self.store.get(kf_id).points
+            if len(pts):
+                self.index.add(kf_id, pts.astype(np.float64))
 
-    def submap(self, kf_id: int, radius: int) -> np.ndarray:
-        """Clouds of keyframes kf_id-radius..kf_id+radius (those that exist) in kf_id's frame."""
-        centre = self.keyframes[kf_id].T_world_kf_odom
+    def submap(self, kf_id: int, radius: int, upto: int) -> np.ndarray:
+        """Clouds of keyframes kf_id-radius..kf_id+radius (none after `upto`) in kf_id's frame."""
+        centre = self.store.T_world_kf_odom(kf_id)
         parts = []
-        for j in range(max(0, kf_id - radius), min(len(self.keyframes), kf_id + radius + 1)):
-            kf = self.keyframes[j]
+        for j in range(max(0, kf_id - radius), min(upto, kf_id + radius) + 1):
+            kf = self.store.get(j)
             parts.append(transform_points(relative(centre, kf.T_world_kf_odom),
                                           kf.points.astype(np.float64)))
         return np.concatenate(parts)
 
-    def add_keyframe(self, kf: Keyframe) -> list[LoopRecord]:
-        """Add a keyframe node, look for loops, verify them; returns the verified candidates."""
-        b = self.cfg.backend
-        self.keyframes.append(kf)
-        if kf.id == 0:
-            self.graph.add_prior(0, kf.T_world_kf_odom, b.prior_rot_sigma_deg, b.prior_trans_sigma_m)
-            self._poses[0] = kf.T_world_kf_odom
-        else:
-            prev = self.keyframes[kf.id - 1]
-            T_prev_kf = relative(prev.T_world_kf_odom, kf.T_world_kf_odom)
-            self.graph.add_odometry(prev.id, kf.id, T_prev_kf, rot_sigma_deg=b.odom_rot_sigma_deg,
-                                    trans_sigma_m=b.odom_trans_sigma_m)
-            self._poses[kf.id] = self._poses[prev.id] @ T_prev_kf
-        self.graph.set_initial(kf.id, self._poses[kf.id])
+    def process(self, kf_id: int) -> LoopResult:
+        """Look for loops of keyframe kf_id (the newest one processed), verify the candidates
+        until one is accepted, then index the keyframe."""
+        kf = self.store.get(kf_id)
         query_pts = kf.points.astype(np.float64)
         records: list[LoopRecord] = []
+        constraint = None
         if len(query_pts) == 0:  # nothing in range: a graph node, but nothing to describe
-            return records
+            return LoopResult(kf_id, (), None)
         found = self.index.query(kf.id, query_pts)
+        radius = self.cfg.loop.verify.submap_radius
         for cand in found.candidates[: self.cfg.loop.max_verify]:
-            match = self.keyframes[cand.match]
-            query_cloud = self.submap(kf.id, self.cfg.loop.verify.submap_radius)
-            res = verify(cand, query_cloud, self.submap(cand.match, self.cfg.loop.verify.submap_radius),
+            query_cloud = self.submap(kf.id, radius, kf.id)
+            res = verify(cand, query_cloud, self.submap(cand.match, radius, kf.id),
                          self.cfg.loop.verify)
-            T = res.T_match_query  # the refined winner, logged for rejected candidates too
-            records.append(LoopRecord(kf.frame_index, match.frame_index, kf.id, match.id,
-                                      cand.score, float(np.degrees(cand.yaw_guess_rad)), res.fitness,
-                                      res.rmse_m, res.accepted, res.reason, T))
+            records.append(LoopRecord(kf.frame_index, self.store.frame_index(cand.match),
+                                      kf.id, cand.match, cand.score,
+                                      float(np.degrees(cand.yaw_guess_rad)), res.fitness,
+                                      res.rmse_m, res.accepted, res.reason, res.T_match_query))
             if res.accepted:
-                self.graph.add_loop(match.id, kf.id, res.constraint.T_match_query,
-                                    res.constraint.information, robust_k=b.huber_k)
-                self._poses = self.graph.optimize(b.max_iterations)
+                constraint = res.constraint
                 log.info("loop accepted: frame %d -> frame %d (fitness %.2f)", kf.frame_index,
-                         match.frame_index, res.fitness)
+                         records[-1].match_frame, res.fitness)
                 break
         self.index.add(kf.id, query_pts)
-        return records
+        return LoopResult(kf_id, tuple(records), constraint)
 
 
 def loops_csv_rows(records: list[LoopRecord]) -> list[list]:

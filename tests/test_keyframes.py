@@ -1,0 +1,72 @@
+"""Keyframe store on disk and the streamed global map."""
+
+import numpy as np
+import pytest
+
+from lidar_slam.errors import InputError
+from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.geometry import make_pose
+from lidar_slam.keyframes import KeyframeStore
+from lidar_slam.mapping import read_ply, write_map
+
+
+def _fill(store, n=30, seed=0):
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for k in range(n):
+        pts = rng.uniform(-40, 40, (500 + k, 3))
+        inten = rng.uniform(0, 1, len(pts)).astype(np.float32)
+        store.add(10 * k, make_pose(np.eye(3), [3.0 * k, 0, 0]), pts, inten)
+        clouds.append((pts, inten))
+    return clouds
+
+
+def test_keyframes_store_reads_back_what_it_wrote(tmp_path):
+    store = KeyframeStore(tmp_path / "kf", cache_size=4)
+    clouds = _fill(store)
+    for k in (0, 7, 29, 3):  # most are out of the small cache: read from disk
+        kf = store.get(k)
+        np.testing.assert_allclose(kf.points, clouds[k][0].astype(np.float32))
+        np.testing.assert_array_equal(kf.intensity, clouds[k][1])
+        assert kf.frame_index == 10 * k and kf.T_world_kf_odom[0, 3] == 3.0 * k
+    store.flush()
+    store.close()
+
+
+def test_keyframes_store_reopens_and_truncates_to_a_checkpoint(tmp_path):
+    store = KeyframeStore(tmp_path / "kf")
+    clouds = _fill(store, 12)
+    store.flush()
+    store.close()
+    with open(tmp_path / "kf" / "table.bin", "ab") as fh:  # a killed run's partial record
+        fh.write(b"\x01" * 17)
+    again = KeyframeStore(tmp_path / "kf", keep=True)
+    assert len(again) == 12
+    again.truncate(9)
+    assert len(again) == 9
+    kf = again.add(999, np.eye(4), clouds[0][0], None)
+    assert kf.id == 9 and again.get(9).intensity is None
+    np.testing.assert_allclose(again.get(8).points, clouds[8][0].astype(np.float32))
+    with pytest.raises(InputError):
+        again.truncate(50)
+    again.close()
+    assert len(KeyframeStore(tmp_path / "kf")) == 0  # a fresh store starts empty
+
+
+def test_keyframes_streamed_map_equals_downsampling_everything(tmp_path, monkeypatch):
+    import lidar_slam.mapping as mapping
+
+    monkeypatch.setattr(mapping, "TILE_VOXELS", 50)  # many tiles: 10 m at 0.2 m
+    monkeypatch.setattr(mapping, "CHUNK_POINTS", 3000)  # many spills
+    store = KeyframeStore(tmp_path / "kf")
+    clouds = _fill(store)
+    poses = {k: store.T_world_kf_odom(k) for k in range(len(store))}
+    n = write_map(tmp_path / "map.ply", store, poses, 0.2)
+    pts, inten = read_ply(tmp_path / "map.ply")
+    world = np.concatenate([c[0].astype(np.float32).astype(np.float64) + [3.0 * k, 0, 0]
+                            for k, c in enumerate(clouds)])
+    ref, ref_i = voxel_downsample(world, 0.2, np.concatenate([c[1] for c in clouds]))
+    assert n == len(pts) == len(ref)
+    key = lambda p: np.lexsort(np.floor(p / 0.2).T)  # noqa: E731
+    np.testing.assert_allclose(pts[key(pts)], ref[key(ref)].astype(np.float32), atol=1e-4)
+    np.testing.assert_allclose(inten[key(pts)], ref_i[key(ref)], atol=1e-5)
