@@ -222,3 +222,67 @@ def test_information_matrix_is_in_the_query_frame():
     got = info / info[5, 5]
     mask = np.abs(raw) > 1e-3
     np.testing.assert_allclose(got[mask], raw[mask], rtol=1e-3)
+
+
+def test_small_gicp_hessian_invents_information_along_a_diagonal_corridor():
+    """Why information_matrix keeps its own point-to-plane Hessian: small_gicp's PLANE_ICP H
+    agrees along an axis-aligned corridor but not along one at 45 deg to the axes."""
+    import small_gicp
+
+    along = []
+    for yaw_deg in (0.0, 45.0):
+        tgt, normals = _corridor()
+        R = yaw_matrix(np.radians(yaw_deg))[:3, :3]
+        tgt, normals = tgt @ R.T, normals @ R.T
+        T = make_pose(yaw_matrix(0.3)[:3, :3], [1.0, 0.5, 0.0])
+        src = transform_points(inverse(T), tgt)
+        cloud = small_gicp.PointCloud(tgt)
+        tree = small_gicp.KdTree(cloud)
+        small_gicp.estimate_normals(cloud, tree, num_neighbors=10)
+        res = small_gicp.align(cloud, small_gicp.PointCloud(src), tree, init_T_target_source=T,
+                               registration_type="PLANE_ICP", max_correspondence_distance=0.5,
+                               num_threads=1, max_iterations=1)
+        corr = np.c_[np.arange(len(src)), np.arange(len(src))]
+        ours = information_matrix(src, tgt, normals, corr, T, 0.05, VerifyConfig())
+        axis = T[:3, :3].T @ R[:, 0]  # the corridor's length, in the query frame
+        along.append((axis @ res.H[3:, 3:] @ axis / res.H[5, 5],
+                      axis @ ours[3:, 3:] @ axis / ours[5, 5]))
+    (gicp_0, ours_0), (gicp_45, ours_45) = along
+    assert ours_0 < 1e-4 and ours_45 < 1e-4  # ours: free along the corridor either way
+    assert gicp_0 < 0.02  # small_gicp: weak along an axis-aligned corridor ...
+    assert gicp_45 > 0.3  # ... but as stiff as across it when the corridor is diagonal
+
+
+@pytest.mark.shared_data
+def test_verification_is_repeatable_bit_for_bit(data):
+    query, match = TRUE_PAIRS[0]
+    cand = sc_candidate(data, query, match)
+    runs = [verify(cand, data.cloud(query), data.submap(match), VerifyConfig()) for _ in range(2)]
+    a, b = runs
+    assert a.accepted and b.accepted
+    np.testing.assert_array_equal(a.T_match_query, b.T_match_query)
+    np.testing.assert_array_equal(a.constraint.information, b.constraint.information)
+    assert (a.fitness, a.rmse_m, a.margin) == (b.fitness, b.rmse_m, b.margin)
+    for ha, hb in zip(a.hypotheses, b.hypotheses, strict=True):
+        np.testing.assert_array_equal(ha.T_match_query, hb.T_match_query)
+
+
+def test_a_run_with_loops_never_imports_open3d(tmp_path):
+    """open3d costs ~200 MB of RSS; `lidar-slam run` on .bin scans with loops on must not load
+    it (small_gicp does the verification)."""
+    import json
+    import subprocess
+    import sys
+
+    sample = Path(__file__).resolve().parents[1] / "sample_scans"
+    code = ("import runpy, sys\n"
+            f"sys.argv = ['lidar-slam', 'run', {str(sample)!r}, '--out', {str(tmp_path)!r}]\n"
+            "try:\n"
+            "    runpy.run_module('lidar_slam.cli', run_name='__main__')\n"
+            "except SystemExit as exc:\n"
+            "    assert not exc.code, exc.code\n"
+            "print(sorted(m for m in ('open3d', 'small_gicp') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "['small_gicp']"
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["loops_candidates"] > 0 and summary["loops_accepted"] > 0

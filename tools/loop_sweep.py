@@ -5,7 +5,7 @@ queried against the earlier non-recent ones, every candidate verified.
 Prints one row per candidate (scan-context distance, yaw guess, fitness, rmse, accepted/reason,
 and whether the verified pose is correct against the reference: within 1 m / 5 deg), then the
 time per query for detection and for verification (ms, wall and CPU: on a shared machine the CPU
-time is the fairer number; OMP_NUM_THREADS=1 keeps open3d on one thread), and a summary.
+time is the fairer number; verification's small_gicp runs on one thread), and a summary.
 
 Keyframe clouds are built like the pipeline's: range-cropped to map.max_range_m and voxelised at
 keyframes.cloud_voxel_m. The match cloud may be a submap of +-N neighbouring keyframes merged

@@ -8,7 +8,8 @@ plausible. So every start yaw_guess + k * 90 deg is aligned on coarse clouds (la
 correspondence distances pull in the metres between revisits), the hypotheses are ranked by
 coarse fitness, the winner's basin is probed by restarts pushed a few metres sideways (halls and
 corridors repeat every bay), the winner must beat the best *different* solution by a margin, and
-only the winner is refined on the fine clouds. open3d (legacy pipelines) does the ICP.
+only the winner is refined on the fine clouds. small_gicp does the downsampling, normals,
+KD-trees and ICP, single-threaded: its multi-threaded sums are not reproducible bit for bit.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import small_gicp
 
 from lidar_slam.config import VerifyConfig
 from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg, yaw_matrix, yaw_rad
@@ -25,16 +27,6 @@ from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
 
-
-def _o3d():
-    """open3d, imported on the first verification (its import costs ~1.3 s of a short run)."""
-    from lidar_slam.o3d import o3d
-
-    return o3d
-
-
-def _reg():
-    return _o3d().pipelines.registration
 
 # Two converged poses closer than this are the same solution (for the margin gate).
 _SAME_ROT_DEG = 10.0
@@ -72,39 +64,87 @@ class VerificationResult:
     hypotheses: tuple[Hypothesis, ...] = ()
 
 
-def _cloud(points: np.ndarray, voxel_m: float, normals: bool, max_points: int = 0):
-    """Voxel-downsampled open3d cloud, at most max_points of them (a fixed random subset; 0: no
-    cap; ICP time grows with the source size), with normals when it is an ICP target."""
-    o3d = _o3d()
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    pcd = pcd.voxel_down_sample(voxel_m)
-    n = len(pcd.points)
+# One thread everywhere: small_gicp's OpenMP reductions sum in a varying order.
+_THREADS = 1
+_NEIGHBOURS = 10  # for normals / covariances
+
+
+@dataclass(frozen=True)
+class _Cloud:
+    """A small_gicp cloud with its KD-tree; points (N, 3) in its sensor frame, metres."""
+
+    points: np.ndarray
+    cloud: small_gicp.PointCloud
+    tree: small_gicp.KdTree
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self.cloud.normals()[:, :3]
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """Share of query points with a match point within the inlier distance, their RMSE (m),
+    and the (K, 2) query/match indices of those pairs."""
+
+    fitness: float
+    rmse_m: float
+    correspondences: np.ndarray
+
+
+def _cloud(points: np.ndarray, voxel_m: float, normals: bool, covariances: bool,
+           max_points: int = 0) -> _Cloud:
+    """Voxel-downsampled cloud (voxel centroids), at most max_points of them (a fixed random
+    subset; 0: no cap; ICP time grows with the source size), with normals when it is a
+    point-to-plane target and covariances for GICP."""
+    pts = small_gicp.voxelgrid_sampling(np.asarray(points, np.float64), voxel_m,
+                                        num_threads=_THREADS).points()[:, :3]
+    n = len(pts)
     if 0 < max_points < n:
-        keep = np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))
-        pcd = pcd.select_by_index(keep.tolist())
-    if normals:
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
-    return pcd
+        pts = pts[np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))]
+    pts = np.ascontiguousarray(pts)
+    cloud = small_gicp.PointCloud(pts)
+    tree = small_gicp.KdTree(cloud, num_threads=_THREADS)
+    if normals and covariances:
+        small_gicp.estimate_normals_covariances(cloud, tree, _NEIGHBOURS, _THREADS)
+    elif normals:
+        small_gicp.estimate_normals(cloud, tree, _NEIGHBOURS, _THREADS)
+    elif covariances:
+        small_gicp.estimate_covariances(cloud, tree, _NEIGHBOURS, _THREADS)
+    return _Cloud(pts, cloud, tree)
 
 
-def _icp(src, tgt, T0: np.ndarray, max_corr_m: float, cfg: VerifyConfig) -> np.ndarray:
-    """One ICP run query -> match from T0; returns T_match_query."""
-    reg = _reg()
-    criteria = reg.ICPConvergenceCriteria(1e-5, 1e-5, cfg.max_iterations)
-    if cfg.method == "gicp":
-        est = reg.TransformationEstimationForGeneralizedICP()
-        result = reg.registration_generalized_icp(src, tgt, max_corr_m, T0, est, criteria)
-    else:
-        est = reg.TransformationEstimationPointToPlane()
-        result = reg.registration_icp(src, tgt, max_corr_m, T0, est, criteria)
-    return np.asarray(result.transformation)
+def _icp(src: _Cloud, tgt: _Cloud, T0: np.ndarray, max_corr_m: float,
+         cfg: VerifyConfig) -> np.ndarray:
+    """One ICP run query -> match from T0; returns T_match_query. small_gicp's PLANE_ICP
+    weighs each axis of the residual by the normal's component, so unlike open3d's
+    point-to-plane it resists sliding along oblique walls and needs more iterations to pull in
+    metres (tools/loop_sweep.py --every-scan: 77 loops accepted vs open3d's 88, none wrong)."""
+    result = small_gicp.align(
+        tgt.cloud, src.cloud, tgt.tree, init_T_target_source=T0,
+        registration_type="GICP" if cfg.method == "gicp" else "PLANE_ICP",
+        max_correspondence_distance=max_corr_m, num_threads=_THREADS,
+        max_iterations=cfg.max_iterations)
+    return np.asarray(result.T_target_source)
 
 
-def _coarse_align(src_c, tgt_c, T0: np.ndarray, cfg: VerifyConfig) -> tuple[np.ndarray, float]:
+def _evaluate(src: _Cloud, tgt: _Cloud, T_match_query: np.ndarray, inlier_m: float) -> _Fit:
+    """Fitness and inlier RMSE of T_match_query: each query point's nearest match point."""
+    moved = src.points @ T_match_query[:3, :3].T + T_match_query[:3, 3]
+    idx, sq = tgt.tree.batch_nearest_neighbor_search(moved, num_threads=_THREADS)
+    idx, sq = np.asarray(idx, np.int64), np.asarray(sq, np.float64)
+    inlier = (idx >= 0) & (sq <= inlier_m**2)
+    fitness = float(inlier.sum()) / max(len(moved), 1)
+    rmse = float(np.sqrt(sq[inlier].mean())) if inlier.any() else np.inf
+    return _Fit(fitness, rmse, np.c_[np.flatnonzero(inlier), idx[inlier]])
+
+
+def _coarse_align(src_c: _Cloud, tgt_c: _Cloud, T0: np.ndarray,
+                  cfg: VerifyConfig) -> tuple[np.ndarray, float]:
     """Coarse ICP from T0 (full, then half the coarse correspondence distance); (T, fitness)."""
     T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
     T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
-    return T, _reg().evaluate_registration(src_c, tgt_c, cfg.coarse_inlier_m, T).fitness
+    return T, _evaluate(src_c, tgt_c, T, cfg.coarse_inlier_m).fitness
 
 
 def _failed_gates(fitness: float, rmse: float, margin: float | None, turned_deg: float,
@@ -139,6 +179,11 @@ def information_matrix(src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np
     cfg.info_min_trans_sigma_m. A direction the scans cannot observe at all keeps a weak
     information of (10 deg, 1 m)^-2, so the matrix stays positive definite. corr: (K, 2)
     query/match indices.
+
+    Not small_gicp's RegistrationResult.H: its tangent is the same (rotation first, T exp(xi)),
+    but its PLANE_ICP residual is per axis, n * (q - T p) elementwise, so its Hessian weights by
+    diag(n^2) instead of n n^T and calls a corridor at 45 deg to the axes well constrained along
+    its length (test_small_gicp_hessian_invents_information_along_a_diagonal_corridor).
     """
     R = T_match_query[:3, :3]
     p = src_pts[corr[:, 0]]
@@ -170,17 +215,17 @@ def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.
     the candidate's yaw guess about both clouds' ground normals (see scan_context's convention).
     """
     gicp = cfg.method == "gicp"
-    src = _cloud(query_points, cfg.voxel_m, gicp, cfg.fine_max_points)
-    tgt = _cloud(match_points, cfg.voxel_m, True)
-    src_c = _cloud(query_points, cfg.coarse_voxel_m, gicp, cfg.coarse_max_points)
-    tgt_c = _cloud(np.asarray(tgt.points), cfg.coarse_voxel_m, True)
+    src = _cloud(query_points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
+    tgt = _cloud(match_points, cfg.voxel_m, True, gicp)  # normals for the information matrix
+    src_c = _cloud(query_points, cfg.coarse_voxel_m, False, gicp, cfg.coarse_max_points)
+    tgt_c = _cloud(tgt.points, cfg.coarse_voxel_m, not gicp, gicp)
     if min(len(src_c.points), len(tgt_c.points)) < 10:
         return VerificationResult(False, "too few points", 0.0, np.inf, candidate.yaw_guess_rad,
                                   np.nan, 0.0, None)
     L_q = L_m = np.eye(4)
     if cfg.level_to_ground:
-        L_q = make_pose(level_ground(np.asarray(src.points)).R_level_sensor, np.zeros(3))
-        L_m = make_pose(level_ground(np.asarray(tgt.points)).R_level_sensor, np.zeros(3))
+        L_q = make_pose(level_ground(src.points).R_level_sensor, np.zeros(3))
+        L_m = make_pose(level_ground(tgt.points).R_level_sensor, np.zeros(3))
     if T_match_query_init is None:
         T_match_query_init = inverse(L_m) @ yaw_matrix(candidate.yaw_guess_rad) @ L_q
 
@@ -207,8 +252,8 @@ def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.
 
     # 3. Refine the winner on the fine clouds, score it there, and gate.
     T = _icp(src, tgt, best.T_match_query, cfg.max_correspondence_m, cfg)
-    ev = _reg().evaluate_registration(src, tgt, cfg.inlier_m, T)
-    fitness, rmse = ev.fitness, (ev.inlier_rmse if ev.fitness > 0 else np.inf)
+    ev = _evaluate(src, tgt, T, cfg.inlier_m)
+    fitness, rmse = ev.fitness, ev.rmse_m
     yaw_icp = levelled_yaw(T)
     turned = abs(np.degrees(_wrap(yaw_icp - best.yaw_start_rad)))
     fails = _failed_gates(fitness, rmse, margin if len(hyps) > 1 else None, turned, T, cfg)
@@ -216,8 +261,7 @@ def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.
 
     constraint = None
     if not fails:
-        info = information_matrix(np.asarray(src.points), np.asarray(tgt.points),
-                                  np.asarray(tgt.normals), np.asarray(ev.correspondence_set), T,
+        info = information_matrix(src.points, tgt.points, tgt.normals, ev.correspondences, T,
                                   rmse, cfg)
         constraint = LoopConstraint(candidate.query, candidate.match, T, info, fitness, rmse)
     log.debug("loop %d->%d: fitness %.2f rmse %.3f margin %.2f yaw %+.0f -> %+.0f deg: %s",
