@@ -38,11 +38,13 @@ from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import write_kitti_poses
 
 HERE = Path(__file__).resolve().parent
-SYSTEMS = ("lidar-slam", "kiss-icp", "kiss-slam")
-LABELS = {"lidar-slam": "lidar-slam", "kiss-icp": "KISS-ICP (stock)",
-          "kiss-slam": "KISS-SLAM (stock)"}
+SYSTEMS = ("lidar-slam", "kiss-icp-pipeline", "kiss-icp", "kiss-slam")
+LABELS = {"lidar-slam": "lidar-slam", "kiss-icp-pipeline": "kiss_icp_pipeline (stock, no deskew)",
+          "kiss-icp": "KISS-ICP (stock, own deskew)", "kiss-slam": "KISS-SLAM (stock)"}
 # Which Python package each peer needs; peers live in the `bench` extra and are optional.
-PEER_PACKAGES = {"kiss-icp": "kiss_icp", "kiss-slam": "kiss_slam"}
+PEER_PACKAGES = {"kiss-icp": "kiss_icp", "kiss-icp-pipeline": "kiss_icp", "kiss-slam": "kiss_slam"}
+# frames/s ratios are against the first of these that ran: bare odometry, then kiss-icp's deskew.
+SPEED_BASELINES = ("kiss-icp-pipeline", "kiss-icp")
 # loops.csv as the pipeline writes it (lidar_slam.loop.closer.loops_csv_rows): T_match_query.
 LOOPS_POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 MIN_DRIFT_PATH_M = metrics.KITTI_LENGTHS_M[0]
@@ -85,15 +87,47 @@ class Row:
 # ------------------------------------------------------------------------------ running
 
 
-def timed(cmd: list[str], log_path: Path) -> tuple[float, float, int]:
-    """Wall seconds, peak RSS (MB) and exit code of one child process; its output goes to log."""
+def _tree_rss_mb(pid: int) -> float:
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        procs = [proc] + proc.children(recursive=True)
+    except psutil.Error:
+        return 0.0
+    total = 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total / 2**20
+
+
+def timed(cmd: list[str], log_path: Path, cwd: Path | None = None) -> tuple[float, float, int]:
+    """Wall seconds, peak RSS (MB) and exit code of one child process; its output goes to log.
+    Peak RSS: the larger of the child's own peak (os.wait4) and the summed RSS of the child and
+    every process it started, sampled 4 times a second."""
+    import threading
+
+    peak = [0.0]
     with log_path.open("w") as log:
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=cwd)
+        done = threading.Event()
+
+        def sample() -> None:
+            while not done.wait(0.25):
+                peak[0] = max(peak[0], _tree_rss_mb(proc.pid))
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t0
+        done.set()
+        sampler.join()
     proc.returncode = os.waitstatus_to_exitcode(status)  # already reaped by wait4
-    return wall, usage.ru_maxrss / 1024.0, proc.returncode
+    return wall, max(usage.ru_maxrss / 1024.0, peak[0]), proc.returncode
 
 
 def command(system: str, seq: Sequence, out: Path) -> list[str]:
@@ -103,6 +137,12 @@ def command(system: str, seq: Sequence, out: Path) -> list[str]:
         cfg = ["--config", str(seq.config)] if seq.config else []
         return [sys.executable, "-m", "lidar_slam.cli", "run", str(seq.path), "--out", str(out),
                 "--overwrite", *rng, *cfg]
+    if system == "kiss-icp-pipeline":
+        # kiss-icp's own command on the scan files (its generic loader reads .bin as KITTI
+        # x, y, z, intensity: no per-point times, so no deskew), results under out/.
+        scans = seq.path / "velodyne" if (seq.path / "velodyne").is_dir() else seq.path
+        exe = Path(sys.executable).with_name("kiss_icp_pipeline")
+        return [str(exe), str(scans), "--jump", str(seq.start), "--n-scans", str(seq.n)]
     if system == "kiss-icp":
         # --deskew: per-point times go to register_frame when the scans carry them, as
         # kiss-icp's own pipeline does (its deskew is on by default).
@@ -195,6 +235,9 @@ def sweep_end_truth(seq: Sequence) -> np.ndarray | None:
 def evaluate_row(row: Row, seq: Sequence, out: Path, gt_file: Path | None) -> None:
     """Trajectory metrics (evaluate.run_eval) and loop counts of one finished run."""
     poses = out / "poses_kitti.txt"
+    if row.system == "kiss-icp-pipeline":  # kiss-icp writes under results/<stamp>/
+        found = sorted(out.glob("results/latest/*_poses_kitti.txt"))
+        poses = found[0] if found else poses
     if gt_file is not None:
         try:
             row.metrics.update(evaluate.run_eval(poses, gt_file, out_dir=out / "eval"))
@@ -231,7 +274,7 @@ def cells(row: Row) -> list[str]:
     else:
         t_err, r_err = _num(m["t_err_pct"], 2), _num(m["r_err_deg_per_100m"], 3)
         ate = _num(m.get("ate_rmse_m"), 3)
-    if row.system == "kiss-icp":
+    if row.system in ("kiss-icp", "kiss-icp-pipeline"):
         loops = "- (odometry only)"
     elif row.loops_accepted is None:
         loops = "n/a"
@@ -249,13 +292,15 @@ def markdown(rows: list[Row], meta: dict) -> str:
     lines.append("")
     lines.append(f"frames/s: frames / median whole-process wall time over {meta['repeats']} "
                  "interleaved repeat(s), interpreter start-up and imports included, input files "
-                 "read once beforehand (warm page cache); peak MB: max "
-                 "RSS over the repeats (os.wait4). t_err/r_err: KITTI devkit segments of 100-800 m "
+                 "read once beforehand (warm page cache); peak MB: max over the repeats of the "
+                 "summed RSS of the run's processes (sampled 4/s) or its own peak (os.wait4). t_err/r_err: KITTI devkit segments of 100-800 m "
                  "(n/a when the path is shorter). ATE: RMSE after rigid Umeyama alignment. Loops "
                  "correct: estimated T_match_query within 1 m / 5 deg of the truth.")
     for seq, ratio in meta["fps_vs_kiss_icp"].items():
+        ratio = dict(ratio)
+        base = ratio.pop("baseline")
         text = ", ".join(f"{LABELS[s]} {v:.2f}x" for s, v in ratio.items())
-        lines.append(f"- {seq}: frames/s relative to stock KISS-ICP: {text}")
+        lines.append(f"- {seq}: frames/s relative to {LABELS[base]}: {text}")
     for r in rows:
         for note in r.notes:
             lines.append(f"- {r.sequence} / {LABELS[r.system]}: {note}")
@@ -307,7 +352,7 @@ def load_sequence(path: str, start: int, n_scans: int | None, configs: dict[str,
     if src.ground_truth is not None:
         gt = src.ground_truth[start:start + n]
         gt = inverse(gt[0]) @ gt
-    return Sequence(Path(path), src.name, start, n, gt, configs.get(src.name))
+    return Sequence(Path(path).resolve(), src.name, start, n, gt, configs.get(src.name))
 
 
 def warm_page_cache(path: Path) -> tuple[float, float]:
@@ -382,7 +427,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 out = seq_dir / s
                 out.mkdir(exist_ok=True)
-                wall, mb, code = timed(command(s, seq, out), out / "log.txt")
+                wall, mb, code = timed(command(s, seq, out), out / "log.txt", cwd=out)
                 print(f"{seq.name} {LABELS[s]} repeat {rep + 1}/{args.repeats}: {wall:.2f} s, "
                       f"{mb:.0f} MB" + (f", exit {code}" if code else ""), flush=True)
                 if code != 0:
@@ -398,9 +443,10 @@ def main(argv: list[str] | None = None) -> int:
     ratios: dict[str, dict[str, float]] = {}
     for seq in seqs:
         by = {r.system: r for r in rows if r.sequence == seq.name and r.fps}
-        if "kiss-icp" in by:
-            ratios[seq.name] = {s: r.fps / by["kiss-icp"].fps for s, r in by.items()
-                                if s != "kiss-icp"}
+        base = next((b for b in SPEED_BASELINES if b in by), None)
+        if base is not None:
+            ratios[seq.name] = {"baseline": base, **{s: r.fps / by[base].fps
+                                                     for s, r in by.items() if s != base}}
     meta = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
             "cpus": os.cpu_count(), "repeats": args.repeats, "start": args.start,
             "n_scans": args.n_scans, "systems": systems,
