@@ -25,6 +25,45 @@ def _vec(points: np.ndarray):
     return kp._Vector3dVector(points)
 
 
+_INDEX_BITS = 22  # up to 4M points per scan
+_INDEX_MASK = np.uint64((1 << _INDEX_BITS) - 1)
+
+
+class VoxelSelector:
+    """One point per voxel within a range, chosen by kiss-icp's C++ crop and voxel downsample
+    (the first point of each voxel, as kiss-icp keeps), returned as indices into the input.
+
+    kiss-icp returns points, not indices, so each point's index rides in the lowest 22 mantissa
+    bits of its x coordinate while it is selected (a change of under 1e-9 of |x|: 0.1 um at
+    100 m); the caller keeps using the untouched points. Several times faster than NumPy.
+    """
+
+    def __init__(self, max_num_threads: int = 0):
+        self.max_num_threads = max_num_threads
+        self._crops: dict[tuple[float, float], object] = {}
+
+    def __call__(self, points: np.ndarray, voxel_m: float, min_range_m: float,
+                 max_range_m: float) -> np.ndarray:
+        """Indices (int64) of the selected points of points (N,3)."""
+        if len(points) == 0:
+            return np.zeros(0, dtype=np.int64)
+        if len(points) > int(_INDEX_MASK) + 1:
+            raise ValueError(f"{len(points)} points: at most {int(_INDEX_MASK) + 1} per scan")
+        crop = self._crops.get((min_range_m, max_range_m))
+        if crop is None:
+            crop = kp._Preprocessor(max_range_m, min_range_m, False, self.max_num_threads)
+            self._crops[(min_range_m, max_range_m)] = crop
+        tagged = np.array(points, dtype=np.float64, order="C")
+        x = tagged[:, 0].view(np.uint64)
+        x &= ~_INDEX_MASK
+        x |= np.arange(len(points), dtype=np.uint64)
+        cropped = crop._preprocess(_vec(tagged), np.zeros(0), np.eye(4))
+        chosen = np.asarray(kp._voxel_down_sample(cropped, voxel_m))
+        if len(chosen) == 0:
+            return np.zeros(0, dtype=np.int64)
+        return (np.ascontiguousarray(chosen[:, 0]).view(np.uint64) & _INDEX_MASK).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class OdometryResult:
     """One scan's odometry. T_world_scan: the pose at the scan's stamp; T_world_ref: at the

@@ -17,7 +17,7 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
 from lidar_slam.geometry import inverse, transform_points
 from lidar_slam.keyframes import KeyframeSelector, KeyframeStore
-from lidar_slam.odometry import Odometry, OdometryResult
+from lidar_slam.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)
@@ -54,8 +54,9 @@ class Pipeline:
     def __init__(self, cfg: SlamConfig, run_dir: str | Path | None = None, viz=None,
                  resume: bool = False):
         self.cfg = cfg
-        self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m())
         self.odometry = Odometry(cfg)
+        self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(),
+                               VoxelSelector(cfg.odometry.max_num_threads))
         self.keyframes = KeyframeSelector(cfg.keyframes)
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
         # the run folder's store (lidar_slam.checkpoint cuts it back to the checkpoint).

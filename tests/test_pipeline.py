@@ -43,8 +43,9 @@ def test_kiss_icp_never_deskews_a_second_time():
 
 
 def test_heavy_libraries_load_only_when_needed():
-    """open3d (~1.3 s), scipy.spatial (~0.4 s) and gtsam load on the first loop candidate,
-    ring-key tree and optimisation, not at start-up: short runs and `--no-loops` skip them."""
+    """scipy.spatial (~0.4 s) and gtsam load when the ring-key tree and the back-end are first
+    needed, not at start-up: short runs and `--no-loops` skip them; a run never loads open3d
+    (tests/test_verify.py checks a whole run)."""
     import subprocess
     import sys
 

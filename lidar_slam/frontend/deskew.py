@@ -14,15 +14,17 @@ registration itself.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from lidar_slam.config import DataConfig
-from lidar_slam.frontend.crop import range_mask
-from lidar_slam.frontend.downsample import voxel_first_indices
 from lidar_slam.geometry import interpolate, rotvec_from_matrix
 from lidar_slam.types import Scan
+
+# (points (N,3), voxel_m, min_range_m, max_range_m) -> indices of one point per voxel in range
+Selector = Callable[[np.ndarray, float, float, float], np.ndarray]
 
 
 def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarray,
@@ -68,6 +70,7 @@ class DeskewedScan:
     ref_s: float
     period_s: float
     T_prev_curr: np.ndarray
+    select: Selector
     selected: bool = False  # points are the range-cropped one-per-voxel selection
 
     def T_ref_stamp(self, T_prev_curr: np.ndarray) -> np.ndarray:
@@ -82,8 +85,7 @@ class DeskewedScan:
         """One point per voxel_m voxel within the range, deskewed to the reference instant the
         same way as the registration points, with its intensity: (K,3) and (K,) or None."""
         scan = self.scan
-        near = np.flatnonzero(range_mask(scan.points, min_range_m, max_range_m))
-        idx = near[voxel_first_indices(scan.points[near], voxel_m)]
+        idx = self.select(scan.points, voxel_m, min_range_m, max_range_m)
         pts = scan.points[idx]
         if self.ref_s != 0.0:
             pts = deskew(pts, scan.point_times[idx] - self.ref_s, self.T_prev_curr, self.period_s)
@@ -94,9 +96,11 @@ class Deskewer:
     """Keeps the sweep timing between scans (period, reference instant) and deskews each scan
     with the last estimated frame-to-frame motion."""
 
-    def __init__(self, cfg: DataConfig, voxel_m: float, default_period_s: float = 0.1):
+    def __init__(self, cfg: DataConfig, voxel_m: float, select: Selector,
+                 default_period_s: float = 0.1):
         self.cfg = cfg
         self.voxel_m = voxel_m  # one registration point per voxel: kiss-icp's 0.5 x voxel size
+        self.select = select
         self.last_stamp_s: float | None = None
         self.last_period_s = default_period_s
 
@@ -116,7 +120,7 @@ class Deskewer:
         self.last_stamp_s, self.last_period_s = scan.stamp_s, period_s
         times = scan.point_times
         if not self.cfg.deskew or times is None or len(scan.points) == 0:
-            return DeskewedScan(scan, scan.points, 0.0, period_s, T_prev_curr)
+            return DeskewedScan(scan, scan.points, 0.0, period_s, T_prev_curr, self.select)
         # Deskew to the middle of the sweep: the correction, and with it the effect of a wrong
         # velocity guess, is half what deskewing to an end of the sweep gives; that feedback
         # makes start-referenced deskew diverge on fast sparse scans. The points are voxel-
@@ -126,7 +130,7 @@ class Deskewer:
         ref_s = 0.5 * (float(times.min()) + float(times.max()))
         if self.cfg.deskew_all_points:
             points = deskew(scan.points, times - ref_s, T_prev_curr, period_s)
-            return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr)
-        sel = DeskewedScan(scan, scan.points, ref_s, period_s, T_prev_curr)
+            return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select)
+        sel = DeskewedScan(scan, scan.points, ref_s, period_s, T_prev_curr, self.select)
         points, _ = sel.cloud(self.voxel_m, self.cfg.min_range_m, self.cfg.max_range_m)
-        return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, selected=True)
+        return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select, True)
