@@ -56,9 +56,6 @@ class ScanContextConfig(_Section):
     # yaw guess is then about the ground normal. Bins use the fitted sensor height when found.
     level_to_ground: bool = True
     max_tilt_deg: float = 30.0
-    # The ring-key KD-tree is rebuilt once this many keyframes were added since the last build;
-    # the ones added in between are compared by brute force.
-    tree_rebuild_every: int = 20
 
 
 class VerifyConfig(_Section):

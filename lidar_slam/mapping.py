@@ -1,9 +1,6 @@
 """Global map: keyframe clouds placed with the final poses, voxel-downsampled, written as PLY.
 
-Built by streaming, so memory does not grow with the drive: keyframes are read from the store a
-chunk at a time, their world points are split into square tiles (whole voxels, so every voxel
-lies in one tile) spilled to temporary files, and each tile is downsampled and appended to the
-PLY on its own. The result is the same as downsampling everything at once.
+Built by streaming, so memory does not grow with the drive (see write_map).
 """
 
 from __future__ import annotations
@@ -15,12 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import transform_points
 from lidar_slam.keyframes import KeyframeStore
 
-TILE_VOXELS = 1000  # tile side in voxels (200 m at 0.2 m)
-CHUNK_POINTS = 2_000_000  # points gathered before spilling them to the tiles
+TILE_VOXELS = 500  # tile side in voxels (100 m at 0.2 m)
+CHUNK_POINTS = 250_000  # points gathered before reducing and spilling them to the tiles
 
 
 def _ply_header(n: int, intensity: bool) -> bytes:
@@ -56,19 +52,45 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     return rows[:, :3].astype(np.float64), rows[:, 3].copy() if ncol == 4 else None
 
 
+_AXIS_BITS = 21  # voxel coordinates per axis: +-2^20 voxels (+-210 km at 0.2 m)
+
+
+def _voxel_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """World voxel key (int64) per point, and its tile (int64) of TILE_VOXELS^2 voxels."""
+    cells = np.floor(points / voxel_m).astype(np.int64) + (1 << (_AXIS_BITS - 1))
+    keys = (cells[:, 0] << (2 * _AXIS_BITS)) | (cells[:, 1] << _AXIS_BITS) | cells[:, 2]
+    tiles = (cells[:, 0] // TILE_VOXELS) * (1 << _AXIS_BITS) + cells[:, 1] // TILE_VOXELS
+    return keys, tiles
+
+
+def _reduce(keys: np.ndarray, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sum the rows of sums (K, C) that share a key: (unique keys, summed rows)."""
+    order = np.argsort(keys, kind="stable")
+    keys, sums = keys[order], sums[order]
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return keys[starts], np.add.reduceat(sums, starts, axis=0)
+
+
 def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.ndarray],
               voxel_m: float) -> int:
-    """Stream the store's keyframes, placed at T_world_kf, into a voxel_m-downsampled PLY map;
-    returns the number of map points."""
+    """Stream the store's keyframes, placed at T_world_kf, into a PLY map of one point per
+    voxel_m voxel (the centroid of its points, with their mean intensity); returns the number of
+    map points.
+
+    Memory stays bounded: keyframes are read a chunk at a time, each chunk is reduced to per-voxel
+    sums (x, y, z, intensity, count) split by tile and spilled to temporary files, and each tile
+    is then reduced on its own and appended to the PLY body. The result equals downsampling all
+    points at once (up to the order of the float sums).
+    """
+    if not voxel_m > 0:
+        raise ValueError(f"map voxel size must be positive, got {voxel_m}")
     path = Path(path)
     table = store.table()
     ids = [int(k) for k in table["id"] if int(k) in T_world_kf]
     has_intensity = bool(len(ids)) and bool(table["has_intensity"][ids].all())
-    ncol = 4 if has_intensity else 3
-    tile_m = voxel_m * TILE_VOXELS if voxel_m > 0 else np.inf
     spill = Path(tempfile.mkdtemp(prefix="map_tiles_", dir=path.parent))
     try:
-        tiles: set[tuple[int, int]] = set()
+        tiles: set[int] = set()
         buf: list[np.ndarray] = []
         n_buf = 0
 
@@ -76,23 +98,24 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
             nonlocal buf, n_buf
             if not buf:
                 return
-            rows = np.concatenate(buf)
+            rows = np.concatenate(buf)  # x y z intensity, world frame
             buf, n_buf = [], 0
-            key = np.floor(rows[:, :2] / tile_m).astype(np.int64) if np.isfinite(tile_m) \
-                else np.zeros((len(rows), 2), np.int64)
-            order = np.lexsort((key[:, 1], key[:, 0]))
-            rows, key = rows[order], key[order]
-            cut = np.flatnonzero(np.any(np.diff(key, axis=0) != 0, axis=1)) + 1
-            for part, k in zip(np.split(rows, cut), key[np.r_[0, cut]] if len(rows) else []):
-                tiles.add((int(k[0]), int(k[1])))
-                with open(spill / f"{k[0]}_{k[1]}.f64", "ab") as fh:
-                    fh.write(part.tobytes())
+            keys, tile = _voxel_keys(rows[:, :3], voxel_m)
+            sums = np.hstack([rows, np.ones((len(rows), 1))])  # + count
+            order = np.argsort(tile, kind="stable")
+            tile, keys, sums = tile[order], keys[order], sums[order]
+            cut = np.flatnonzero(tile[1:] != tile[:-1]) + 1
+            for t, k, s in zip(tile[np.r_[0, cut]], np.split(keys, cut), np.split(sums, cut)):
+                k, s = _reduce(k, s)
+                tiles.add(int(t))
+                with open(spill / f"{int(t)}.bin", "ab") as fh:
+                    fh.write(np.hstack([k.view(np.float64)[:, None], s]).tobytes())
 
         for kf_id in ids:
             kf = store.get(kf_id)
             pts = transform_points(T_world_kf[kf_id], kf.points.astype(np.float64))
-            cols = [pts] + ([kf.intensity.astype(np.float64)[:, None]] if has_intensity else [])
-            buf.append(np.hstack(cols))
+            inten = kf.intensity if has_intensity else np.zeros(len(pts), np.float32)
+            buf.append(np.hstack([pts, inten.astype(np.float64)[:, None]]))
             n_buf += len(pts)
             if n_buf >= CHUNK_POINTS:
                 flush()
@@ -100,12 +123,12 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
         body = spill / "body.bin"
         n = 0
         with open(body, "wb") as out:
-            for tx, ty in sorted(tiles):
-                rows = np.fromfile(spill / f"{tx}_{ty}.f64").reshape(-1, ncol)
-                pts, inten = voxel_downsample(rows[:, :3], voxel_m,
-                                              rows[:, 3] if has_intensity else None)
-                out.write(_rows(pts, inten).tobytes())
-                n += len(pts)
+            for t in sorted(tiles):
+                rec = np.fromfile(spill / f"{t}.bin").reshape(-1, 6)
+                keys, sums = _reduce(np.ascontiguousarray(rec[:, 0]).view(np.int64), rec[:, 1:])
+                mean = sums[:, :4] / sums[:, 4:5]
+                out.write(_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
+                n += len(keys)
         tmp = path.with_name(path.name + ".tmp")
         with open(tmp, "wb") as out, open(body, "rb") as src:
             out.write(_ply_header(n, has_intensity))

@@ -99,22 +99,23 @@ def test_last_scans_retrieve_an_early_scan_of_the_same_place(ouster_loop):
 
 
 @pytest.mark.shared_data
-def test_recent_keyframes_are_never_candidates_and_lazy_tree_matches_brute_force(ouster_loop):
+def test_recent_keyframes_are_never_candidates_and_grids_on_disk_match_ram(ouster_loop, tmp_path):
     clouds = {f: keyframe_cloud(ouster_loop, f) for f in range(100, 124)}
-    lazy = ScanContextIndex(ScanContextConfig(**INDOOR, exclude_recent=5, tree_rebuild_every=7,
-                                              threshold=1.0))
-    eager = ScanContextIndex(ScanContextConfig(**INDOOR, exclude_recent=5, tree_rebuild_every=1,
-                                               threshold=1.0))
+    cfg = ScanContextConfig(**INDOOR, exclude_recent=5, threshold=1.0)
+    disk = ScanContextIndex(cfg, tmp_path / "grids.bin")
+    ram = ScanContextIndex(cfg)
     for f, pts in clouds.items():
-        a, b = lazy.query(f, pts), eager.query(f, pts)
+        a, b = disk.query(f, pts), ram.query(f, pts)
         assert all(c.match <= f - 5 for c in a.candidates)
-        assert [c.match for c in a.candidates] == [c.match for c in b.candidates]
+        assert [(c.match, c.score) for c in a.candidates] == [(c.match, c.score)
+                                                               for c in b.candidates]
         if f < 105:
             assert a.best_match is None and not a.candidates
-        lazy.add(f, pts)
-        eager.add(f, pts)
+        disk.add(f, pts)
+        ram.add(f, pts)
     with pytest.raises(ValueError):
-        lazy.add(110, clouds[110])
+        disk.add(110, clouds[110])
+    disk.close()
 
 
 def test_descriptor_bins_hold_the_highest_point_above_ground():

@@ -71,7 +71,14 @@ class DeskewedScan:
     period_s: float
     T_prev_curr: np.ndarray
     select: Selector
-    selected: bool = False  # points are the range-cropped one-per-voxel selection
+    # With per-point times, points are the range-cropped one-per-voxel selection: its indices
+    # into the scan and its voxel size.
+    selected_idx: np.ndarray | None = None
+    selected_voxel_m: float = 0.0
+
+    @property
+    def selected(self) -> bool:
+        return self.selected_idx is not None
 
     def T_ref_stamp(self, T_prev_curr: np.ndarray) -> np.ndarray:
         """The stamp's sensor frame in the reference frame, along the motion T_prev_curr (the
@@ -85,6 +92,12 @@ class DeskewedScan:
         """One point per voxel_m voxel within the range, deskewed to the reference instant the
         same way as the registration points, with its intensity: (K,3) and (K,) or None."""
         scan = self.scan
+        if self.selected_idx is not None and voxel_m == self.selected_voxel_m:
+            # The registration points are this very selection over a wider range: reuse them.
+            idx = self.selected_idx
+            r2 = np.einsum("ij,ij->i", self.points, self.points)
+            near = (r2 >= min_range_m**2) & (r2 <= max_range_m**2)
+            return self.points[near], None if scan.intensity is None else scan.intensity[idx[near]]
         idx = self.select(scan.points, voxel_m, min_range_m, max_range_m)
         pts = scan.points[idx]
         if self.ref_s != 0.0:
@@ -131,6 +144,7 @@ class Deskewer:
         if self.cfg.deskew_all_points:
             points = deskew(scan.points, times - ref_s, T_prev_curr, period_s)
             return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select)
-        sel = DeskewedScan(scan, scan.points, ref_s, period_s, T_prev_curr, self.select)
-        points, _ = sel.cloud(self.voxel_m, self.cfg.min_range_m, self.cfg.max_range_m)
-        return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select, True)
+        idx = self.select(scan.points, self.voxel_m, self.cfg.min_range_m, self.cfg.max_range_m)
+        points = deskew(scan.points[idx], times[idx] - ref_s, T_prev_curr, period_s)
+        return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select, idx,
+                            self.voxel_m)

@@ -58,7 +58,8 @@ class LoopDetector:
     def __init__(self, cfg: SlamConfig, store: KeyframeStore):
         self.cfg = cfg
         self.store = store
-        self.index = ScanContextIndex(cfg.loop.scan_context)
+        # Descriptor grids go to the keyframe store's folder: RAM keeps a few hundred bytes each.
+        self.index = ScanContextIndex(cfg.loop.scan_context, store.root / "descriptors.bin")
 
     def reindex(self, upto: int) -> None:
         """Index keyframes 0..upto from the store into a fresh detector, as process() would

@@ -1,5 +1,5 @@
 """Scan Context place recognition (Kim & Kim, IROS 2018): a rings x sectors polar grid of the
-highest point per bin, ring keys in a KD-tree for retrieval, column-shift alignment for the yaw.
+highest point per bin, nearest ring keys for retrieval, column-shift alignment for the yaw.
 
 Yaw convention: a candidate's yaw_guess_rad is the yaw of T_match_query, i.e. the rotation that
 takes query-frame directions into the match frame (p_match = Rz(yaw) p_query, about the levelled
@@ -10,7 +10,9 @@ column j lines up with match column j + shift and yaw = shift * 360 / sectors de
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -102,20 +104,54 @@ def shift_to_yaw(shift: int, sectors: int) -> float:
     return float(np.arctan2(np.sin(yaw), np.cos(yaw)))
 
 
-class ScanContextIndex:
-    """Keyframe descriptors with a lazily rebuilt ring-key KD-tree; query before add."""
+class _Rows:
+    """A growable 2-D float array (amortised doubling)."""
 
-    def __init__(self, cfg: ScanContextConfig):
+    def __init__(self, width: int, dtype=np.float32):
+        self.data = np.zeros((16, width), dtype=dtype)
+        self.n = 0
+
+    def append(self, row: np.ndarray) -> None:
+        if self.n == len(self.data):
+            self.data = np.resize(self.data, (2 * self.n, self.data.shape[1]))
+        self.data[self.n] = row
+        self.n += 1
+
+    def view(self) -> np.ndarray:
+        return self.data[: self.n]
+
+
+class ScanContextIndex:
+    """Keyframe descriptors; query before add.
+
+    Memory per keyframe is a few hundred bytes: ring keys, sector keys and levelling rotations
+    stay in RAM (float32), the full grids (rings x sectors) go to `grid_path` when given (read
+    back only for the candidates of a query), else stay in RAM. Candidates are the exact nearest
+    ring keys, by brute force over all eligible keyframes (0.2 ms for 10,000 keyframes).
+    """
+
+    def __init__(self, cfg: ScanContextConfig, grid_path: str | Path | None = None):
         self.cfg = cfg
-        self._ids: list[int] = []
-        self._desc: list[Descriptor] = []
-        self._by_id: dict[int, Descriptor] = {}
-        self._tree = None  # scipy cKDTree, imported on first build (~0.4 s)
-        self._n_tree = 0
+        size = cfg.rings * cfg.sectors
+        self._ids = _Rows(1, np.int64)
+        self._ring = _Rows(cfg.rings)
+        self._sector = _Rows(cfg.sectors)
+        self._R = _Rows(9, np.float64)
+        self._pos: dict[int, int] = {}
+        self._grid_path = None if grid_path is None else Path(grid_path)
+        self._grids = _Rows(size) if grid_path is None else None
+        self._grid_fd = None
+        if self._grid_path is not None:
+            self._grid_fd = os.open(self._grid_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC)
         self._last: tuple[int, Descriptor] | None = None
 
     def __len__(self) -> int:
-        return len(self._ids)
+        return self._ids.n
+
+    def close(self) -> None:
+        if self._grid_fd is not None:
+            os.close(self._grid_fd)
+            self._grid_fd = None
 
     def _describe(self, kf_id: int, points_kf: np.ndarray) -> Descriptor:
         if self._last is not None and self._last[0] == kf_id:
@@ -126,65 +162,65 @@ class ScanContextIndex:
 
     def add(self, kf_id: int, points_kf: np.ndarray) -> None:
         """Index a keyframe (ids increasing); reuses the descriptor a query of kf_id computed."""
-        if self._ids and kf_id <= self._ids[-1]:
-            raise ValueError(f"keyframe ids must increase: {kf_id} after {self._ids[-1]}")
+        if self._ids.n and kf_id <= int(self._ids.data[self._ids.n - 1, 0]):
+            raise ValueError(f"keyframe ids must increase: {kf_id} after "
+                             f"{int(self._ids.data[self._ids.n - 1, 0])}")
         desc = self._describe(kf_id, points_kf)
+        grid = desc.grid.astype(np.float32).ravel()
+        if self._grids is not None:
+            self._grids.append(grid)
+        else:
+            os.pwrite(self._grid_fd, grid.tobytes(), self._ids.n * grid.nbytes)
+        self._pos[kf_id] = self._ids.n
         self._ids.append(kf_id)
-        self._desc.append(desc)
-        self._by_id[kf_id] = desc
-        if len(self._ids) - self._n_tree >= self.cfg.tree_rebuild_every:
-            from scipy.spatial import cKDTree
+        self._ring.append(desc.ring_key)
+        self._sector.append(desc.sector_key)
+        self._R.append(desc.R_level_kf.ravel())
 
-            self._tree = cKDTree(np.stack([d.ring_key for d in self._desc]))
-            self._n_tree = len(self._ids)
+    def _stored(self, pos: int) -> Descriptor:
+        """The descriptor of the keyframe at position pos (grid from RAM or disk)."""
+        shape = (self.cfg.rings, self.cfg.sectors)
+        if self._grids is not None:
+            grid = self._grids.data[pos]
+        else:
+            nbytes = shape[0] * shape[1] * 4
+            grid = np.frombuffer(os.pread(self._grid_fd, nbytes, pos * nbytes), np.float32)
+        return Descriptor(grid.reshape(shape).astype(np.float64),
+                          self._ring.data[pos].astype(np.float64),
+                          self._sector.data[pos].astype(np.float64),
+                          self._R.data[pos].reshape(3, 3))
 
     def R_level_kf(self, kf_id: int) -> np.ndarray:
         """Levelling rotation (3x3) used for an indexed keyframe's descriptor."""
-        return self._by_id[kf_id].R_level_kf
+        return self._R.data[self._pos[kf_id]].reshape(3, 3)
 
     def initial_guess(self, candidate: LoopCandidate, query_points: np.ndarray | None = None
                       ) -> np.ndarray:
         """T_match_query (4x4) from the yaw guess and both keyframes' levelling rotations."""
-        R_q = (self._by_id[candidate.query].R_level_kf if candidate.query in self._by_id
+        R_q = (self.R_level_kf(candidate.query) if candidate.query in self._pos
                else self._describe(candidate.query, query_points).R_level_kf)
-        R_m = self._by_id[candidate.match].R_level_kf
+        R_m = self.R_level_kf(candidate.match)
         c, s = np.cos(candidate.yaw_guess_rad), np.sin(candidate.yaw_guess_rad)
         Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         return make_pose(R_m.T @ Rz @ R_q, np.zeros(3))
 
     def _nearest(self, key: np.ndarray, n_eligible: int) -> np.ndarray:
         """Positions (< n_eligible) of the cfg.candidates ring keys nearest to key."""
-        pos: list[np.ndarray] = []
-        dist: list[np.ndarray] = []
-        n_tree = min(self._n_tree, n_eligible)
-        if n_tree > 0 and self._tree is not None:
-            k = min(self._n_tree, self.cfg.candidates + self._n_tree - n_tree)
-            d, i = self._tree.query(key, k=k)
-            d, i = np.atleast_1d(d), np.atleast_1d(i)
-            ok = i < n_eligible
-            pos.append(i[ok])
-            dist.append(d[ok])
-        if n_eligible > self._n_tree:  # added since the last rebuild: brute force
-            extra = np.arange(self._n_tree, n_eligible)
-            keys = np.stack([self._desc[j].ring_key for j in extra])
-            pos.append(extra)
-            dist.append(np.linalg.norm(keys - key[None, :], axis=1))
-        if not pos:
-            return np.zeros(0, dtype=np.int64)
-        pos_all, dist_all = np.concatenate(pos), np.concatenate(dist)
-        return pos_all[np.argsort(dist_all, kind="stable")[: self.cfg.candidates]]
+        keys = self._ring.data[:n_eligible].astype(np.float64)
+        dist = np.linalg.norm(keys - key[None, :], axis=1)
+        return np.argsort(dist, kind="stable")[: self.cfg.candidates]
 
     def query(self, kf_id: int, points_kf: np.ndarray) -> QueryResult:
         """Loop candidates for keyframe kf_id among keyframes at least exclude_recent ids older."""
         limit = kf_id - self.cfg.exclude_recent
-        n_eligible = int(np.searchsorted(np.asarray(self._ids), limit, side="right"))
+        n_eligible = int(np.searchsorted(self._ids.view()[:, 0], limit, side="right"))
         if n_eligible == 0:
             return QueryResult()
         desc = self._describe(kf_id, points_kf)
         scored = []
         for j in self._nearest(desc.ring_key, n_eligible):
-            dist, shift = align(desc, self._desc[j], self.cfg.local_search_sectors)
-            scored.append((dist, self._ids[j], shift_to_yaw(shift, self.cfg.sectors)))
+            dist, shift = align(desc, self._stored(int(j)), self.cfg.local_search_sectors)
+            scored.append((dist, int(self._ids.data[j, 0]), shift_to_yaw(shift, self.cfg.sectors)))
         scored.sort()
         best = scored[0]
         kept = [LoopCandidate(kf_id, m, d, y) for d, m, y in scored if d < self.cfg.threshold]

@@ -13,11 +13,23 @@ and NumPy, and a process would need its own copy of the libraries and of the key
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 
 from lidar_slam.loop.closer import LoopDetector, LoopResult
+
+
+def _lower_this_threads_priority(niceness: int = 10) -> None:
+    """Run the calling thread at a lower priority (Linux: threads have their own nice value),
+    so that the odometry's registration threads get the cores first and detection uses what is
+    left; the results are waited for at fixed keyframes, so this changes timing, not results."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+    except (AttributeError, OSError):  # not Linux, or not allowed: run at the same priority
+        pass
 
 
 class LoopWorker:
@@ -28,10 +40,14 @@ class LoopWorker:
         self.detector = detector
         self._pool = None if inline else ThreadPoolExecutor(1, thread_name_prefix="loops")
         self._pending: deque[tuple[int, Future | LoopResult]] = deque()
+        self._niced = inline  # the inline detector keeps the caller's priority
         self.busy_s = 0.0  # time the detector spent (worker thread or inline)
         self.wait_s = 0.0  # time the caller waited for results
 
     def _run(self, kf_id: int) -> LoopResult:
+        if not self._niced:
+            _lower_this_threads_priority()
+            self._niced = True
         t0 = time.perf_counter()
         try:
             return self.detector.process(kf_id)
@@ -59,3 +75,4 @@ class LoopWorker:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+        self.detector.index.close()
