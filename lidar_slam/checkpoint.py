@@ -153,7 +153,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
             if kf_id in by_query:
                 pipe.backend.add_loop(by_query[kf_id])
         pipe.backend.update()
-        pipe.loops.detector.reindex(min(upto, len(r.store) - 1))
+        pipe.loops.reindex(min(upto, len(r.store) - 1))
         for kf_id in range(max(upto + 1, 0), len(r.store)):
             pipe.loops.submit(kf_id)
     return meta["frames"]

@@ -111,10 +111,11 @@ class LoopConfig(_Section):
     enabled: bool = True
     # Candidates verified per keyframe query (best descriptor distance first).
     max_verify: int = 3
-    # Detection runs on a worker thread ("inline": in the main flow, for debugging); the result
-    # of keyframe k is applied to the graph when keyframe k + collect_lag_keyframes is made (or
-    # at the end), whatever the worker's speed, so runs are deterministic.
-    worker: Literal["thread", "inline"] = "thread"
+    # Detection runs in a worker process (or thread; "inline": in the main flow, for
+    # debugging); the result of keyframe k is applied to the graph when keyframe
+    # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs
+    # are deterministic.
+    worker: Literal["process", "thread", "inline"] = "process"
     collect_lag_keyframes: int = 10
     scan_context: ScanContextConfig = ScanContextConfig()
     verify: VerifyConfig = VerifyConfig()

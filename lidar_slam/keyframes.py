@@ -170,11 +170,7 @@ class KeyframeStore:
             if not 0 <= kf_id < self._n:
                 raise KeyError(kf_id)
             rec = self._table[kf_id].copy()
-        nbytes = int(rec["count"]) * 4 * POINT_DTYPE.itemsize
-        raw = os.pread(self._read_fd, nbytes, int(rec["first"]) * 4 * POINT_DTYPE.itemsize)
-        rows = np.frombuffer(raw, dtype=POINT_DTYPE).reshape(-1, 4)
-        kf = Keyframe(kf_id, int(rec["frame_index"]), np.array(rec["T"]), rows[:, :3],
-                      rows[:, 3] if rec["has_intensity"] else None)
+        kf = _read_keyframe(self._read_fd, rec)
         self._remember(kf)
         return kf
 
@@ -190,6 +186,53 @@ class KeyframeStore:
             os.close(fd)
         if self._tmp is not None:
             self._tmp.cleanup()
+
+
+def _read_keyframe(points_fd: int, rec) -> Keyframe:
+    """The keyframe of table record rec, its cloud read from the points file."""
+    nbytes = int(rec["count"]) * 4 * POINT_DTYPE.itemsize
+    raw = os.pread(points_fd, nbytes, int(rec["first"]) * 4 * POINT_DTYPE.itemsize)
+    rows = np.frombuffer(raw, dtype=POINT_DTYPE).reshape(-1, 4)
+    return Keyframe(int(rec["id"]), int(rec["frame_index"]), np.array(rec["T"]), rows[:, :3],
+                    rows[:, 3] if rec["has_intensity"] else None)
+
+
+class KeyframeReader:
+    """Read-only view of a store that another process appends to (the loop worker process):
+    every table record is read from table.bin when asked for, with a bounded cache of clouds."""
+
+    def __init__(self, root: str | Path, cache_size: int = 64):
+        self.root = Path(root)
+        self._table_fd = os.open(self.root / "table.bin", os.O_RDONLY)
+        self._points_fd = os.open(self.root / "points.bin", os.O_RDONLY)
+        self._cache: OrderedDict[int, Keyframe] = OrderedDict()
+        self._cache_size = cache_size
+
+    def _record(self, kf_id: int):
+        raw = os.pread(self._table_fd, TABLE_DTYPE.itemsize, kf_id * TABLE_DTYPE.itemsize)
+        if kf_id < 0 or len(raw) != TABLE_DTYPE.itemsize:
+            raise KeyError(kf_id)
+        return np.frombuffer(raw, dtype=TABLE_DTYPE)[0]
+
+    def T_world_kf_odom(self, kf_id: int) -> np.ndarray:
+        return np.array(self._record(kf_id)["T"])
+
+    def frame_index(self, kf_id: int) -> int:
+        return int(self._record(kf_id)["frame_index"])
+
+    def get(self, kf_id: int) -> Keyframe:
+        kf = self._cache.get(kf_id)
+        if kf is None:
+            kf = _read_keyframe(self._points_fd, self._record(kf_id))
+            self._cache[kf_id] = kf
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        self._cache.move_to_end(kf_id)
+        return kf
+
+    def close(self) -> None:
+        os.close(self._table_fd)
+        os.close(self._points_fd)
 
 
 def write_atomic(path: str | Path, text: str | bytes) -> None:

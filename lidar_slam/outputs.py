@@ -18,8 +18,11 @@ from lidar_slam.pipeline import RunResult
 
 
 def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Peak resident memory in MB of this process plus that of its finished children (the loop
+    worker process): an upper bound of the peak of their sum."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return (own + children) / 1024.0
 
 
 def path_length_m(poses: np.ndarray) -> float:

@@ -66,12 +66,10 @@ class Pipeline:
         self.backend = self.loops = None
         if cfg.loop.enabled:
             from lidar_slam.backend.slam_backend import Backend
-            from lidar_slam.loop.closer import LoopDetector
             from lidar_slam.loop.worker import LoopWorker
 
             self.backend = Backend(cfg.backend)
-            self.loops = LoopWorker(LoopDetector(cfg, self.result.store),
-                                    inline=cfg.loop.worker == "inline")
+            self.loops = LoopWorker(cfg, self.result.store, cfg.loop.worker)
             self.result.graph = self.backend.graph
         self.viz = viz
         self.loops_applied_upto = -1  # keyframes whose loop results are in the graph

@@ -1,5 +1,5 @@
 """Loop detection off the critical path: keyframes are submitted as the odometry makes them, a
-worker thread runs detection and verification, and results are collected in keyframe order.
+worker runs detection and verification, and results are collected in keyframe order.
 
 Determinism does not depend on the worker's speed: what the detector computes for a keyframe is
 fixed once the keyframe is stored (see LoopDetector), and the pipeline collects the result of
@@ -7,66 +7,122 @@ keyframe k at a fixed point of the run (when keyframe k + lag is made, or at the
 for it if the worker is behind. So a run on the same input gives the same graph, updated in the
 same order, whatever the machine's load.
 
-A thread, not a process: the heavy parts (ICP, KD-trees, kiss-icp's registration) run in C++
-and NumPy, and a process would need its own copy of the libraries and of the keyframe cache.
+A process by default (`loop.worker: process`): kiss-icp's registration and small_gicp's ICP both
+hold Python's GIL while they run, so a worker *thread* stalls the odometry for as long as each
+verification ICP takes. The worker process reads keyframes from the run folder's store (only
+ids cross the pipe), runs at a lower priority, and ignores Ctrl-C (the main process decides when
+to stop). "thread" and "inline" (in the main flow, for debugging) remain.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import signal
 import threading
 import time
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from pathlib import Path
 
-from lidar_slam.loop.closer import LoopDetector, LoopResult
+from lidar_slam.config import SlamConfig
+from lidar_slam.keyframes import KeyframeReader, KeyframeStore
+
+NICENESS = 10
 
 
-def _lower_this_threads_priority(niceness: int = 10) -> None:
-    """Run the calling thread at a lower priority (Linux: threads have their own nice value),
-    so that the odometry's registration threads get the cores first and detection uses what is
-    left; the results are waited for at fixed keyframes, so this changes timing, not results."""
+def _lower_this_threads_priority() -> None:
+    """Run the calling thread at a lower priority (Linux: a thread has its own nice value), so
+    that the odometry gets the cores first; results are waited for at fixed keyframes, so this
+    changes timing, not results."""
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
-    except (AttributeError, OSError):  # not Linux, or not allowed: run at the same priority
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICENESS)
+    except (AttributeError, OSError):  # not Linux, or not allowed: same priority
         pass
+
+
+# -- the worker process's side -----------------------------------------------------------------
+
+_DETECTOR = None
+
+
+def _start_process(cfg_json: dict, store_root: str) -> None:
+    global _DETECTOR
+    from lidar_slam.loop.closer import LoopDetector
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _lower_this_threads_priority()
+    _DETECTOR = LoopDetector(SlamConfig(**cfg_json), KeyframeReader(store_root))
+
+
+def _timed_process(kf_id: int):
+    t0 = time.perf_counter()
+    return _DETECTOR.process(kf_id), time.perf_counter() - t0
+
+
+def _reindex(upto: int) -> None:
+    _DETECTOR.reindex(upto)
+
+
+# -- the pipeline's side -------------------------------------------------------------------------
 
 
 class LoopWorker:
     """submit(kf_id) in keyframe order; collect(upto) returns the results of keyframes <= upto,
-    in order, waiting for them if needed. inline=True runs detection inside submit()."""
+    in order, waiting for them if needed."""
 
-    def __init__(self, detector: LoopDetector, inline: bool = False):
-        self.detector = detector
-        self._pool = None if inline else ThreadPoolExecutor(1, thread_name_prefix="loops")
-        self._pending: deque[tuple[int, Future | LoopResult]] = deque()
-        self._niced = inline  # the inline detector keeps the caller's priority
-        self.busy_s = 0.0  # time the detector spent (worker thread or inline)
+    def __init__(self, cfg: SlamConfig, store: KeyframeStore, mode: str = "process"):
+        self.mode = mode
+        self.busy_s = 0.0  # time the detector spent
         self.wait_s = 0.0  # time the caller waited for results
+        self._pending: deque[tuple[int, Future]] = deque()
+        self._pool: Executor | None = None
+        self.detector = None
+        if mode == "process":
+            ctx = multiprocessing.get_context("spawn")  # fork is unsafe with TBB threads running
+            self._pool = ProcessPoolExecutor(
+                1, mp_context=ctx, initializer=_start_process,
+                initargs=(cfg.model_dump(mode="json"), str(Path(store.root))))
+        else:
+            from lidar_slam.loop.closer import LoopDetector
 
-    def _run(self, kf_id: int) -> LoopResult:
-        if not self._niced:
-            _lower_this_threads_priority()
-            self._niced = True
+            self.detector = LoopDetector(cfg, store)
+            if mode == "thread":
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="loops",
+                                                initializer=_lower_this_threads_priority)
+
+    def _local(self, kf_id: int):
         t0 = time.perf_counter()
-        try:
-            return self.detector.process(kf_id)
-        finally:
-            self.busy_s += time.perf_counter() - t0
+        return self.detector.process(kf_id), time.perf_counter() - t0
 
     def submit(self, kf_id: int) -> None:
-        """Queue keyframe kf_id (already in the store) for detection."""
-        job = self._run(kf_id) if self._pool is None else self._pool.submit(self._run, kf_id)
+        """Queue keyframe kf_id (already in the store, on disk) for detection."""
+        if self.mode == "process":
+            job = self._pool.submit(_timed_process, kf_id)
+        elif self.mode == "thread":
+            job = self._pool.submit(self._local, kf_id)
+        else:
+            job = Future()
+            job.set_result(self._local(kf_id))
         self._pending.append((kf_id, job))
 
-    def collect(self, upto: int) -> list[LoopResult]:
-        """Results of every submitted keyframe with id <= upto, in keyframe order (each once);
-        a detection error is raised here."""
+    def reindex(self, upto: int) -> None:
+        """Index keyframes 0..upto from the store (resuming a run), before any submit()."""
+        if self.mode == "process":
+            self._pool.submit(_reindex, upto).result()
+        else:
+            self.detector.reindex(upto)
+
+    def collect(self, upto: int) -> list:
+        """Results (LoopResult) of every submitted keyframe with id <= upto, in keyframe order,
+        each once; a detection error is raised here."""
         out = []
         t0 = time.perf_counter()
         while self._pending and self._pending[0][0] <= upto:
             _, job = self._pending.popleft()
-            out.append(job.result() if isinstance(job, Future) else job)
+            result, busy = job.result()
+            self.busy_s += busy
+            out.append(result)
         self.wait_s += time.perf_counter() - t0
         return out
 
@@ -75,4 +131,6 @@ class LoopWorker:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
-        self.detector.index.close()
+        if self.detector is not None:
+            self.detector.index.close()
+            self.detector = None
