@@ -123,6 +123,10 @@ RUN_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.pl
                "checkpoint")
 
 
+SIMULATE_OUTPUTS = ("velodyne", "velodyne_times", "poses.txt", "times.txt", "calib.txt",
+                    "README.txt")
+
+
 def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: bool = False
                     ) -> bool:
     """The one rule for commands that write a folder: an --out that already holds files is
@@ -198,7 +202,7 @@ def run(
 
     from lidar_slam import checkpoint
     from lidar_slam.config import load_config
-    from lidar_slam.io.sources import open_source
+    from lidar_slam.io.sources import open_source, read_ahead
     from lidar_slam.outputs import OdometryStream, write_run
     from lidar_slam.pipeline import Pipeline
 
@@ -242,7 +246,7 @@ def run(
     error = internal_error = None
     with stop:
         try:
-            for scan in source.scans(start + done, total - done):
+            for scan in read_ahead(source.scans(start + done, total - done)):
                 n_kf = len(pipe.result.store)
                 pipe.process(scan)
                 progress.tick(scan)
@@ -356,6 +360,7 @@ def simulate(
     start: int = typer.Option(0, "--start", min=0),
     n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1),
     seed: int = typer.Option(0, "--seed"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a sequence in --out."),
 ) -> None:
     """Ray-cast a lidar along a real trajectory through a procedural street world."""
     import numpy as np
@@ -364,6 +369,7 @@ def simulate(
                                           read_kitti_poses, read_times)
     from lidar_slam.simulate import simulate_sequence
 
+    prepare_out_dir(out, SIMULATE_OUTPUTS, overwrite)
     Tr = read_kitti_calib_tr(calib)
     poses_lidar = camera_to_lidar_poses(read_kitti_poses(poses), Tr)
     times = times or poses.parent.parent / "times" / poses.name

@@ -55,9 +55,7 @@ class Pipeline:
                  resume: bool = False):
         self.cfg = cfg
         self.odometry = Odometry(cfg)
-        # One thread: kiss-icp's parallel crop costs more in waking threads than it saves
-        # (sim 07: 44.9 vs 39.2 ms per frame).
-        self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector(1))
+        self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
         self.keyframes = KeyframeSelector(cfg.keyframes)
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
         # the run folder's store (lidar_slam.checkpoint cuts it back to the checkpoint).
@@ -122,7 +120,7 @@ class Pipeline:
             if res.constraint is not None:
                 self.backend.add_loop(res.constraint)
             self.loops_applied_upto = res.kf_id
-        self.backend.update()
+        self.backend.update(force=False)
 
     def current_kf_poses(self) -> dict[int, np.ndarray]:
         """Best current T_world_kf of every keyframe (incremental estimate, or odometry)."""

@@ -20,6 +20,7 @@ from lidar_slam.geometry import relative
 from lidar_slam.types import LoopConstraint
 
 log = logging.getLogger(__name__)
+UPDATE_EVERY = 25  # keyframes without a loop between incremental updates
 
 
 class Backend:
@@ -70,9 +71,13 @@ class Backend:
         self.constraints.append(c)
         self._loops_pending += 1
 
-    def update(self) -> None:
-        """Fold the new keyframes and loops into the incremental solution."""
+    def update(self, force: bool = True) -> None:
+        """Fold the new keyframes and loops into the incremental solution; force=False only does
+        so when a loop is waiting or UPDATE_EVERY keyframes are (a chain of odometry edges needs
+        no solving: new nodes start at their odometry, chained onto the last estimate)."""
         if not self._new_nodes and not self._loops_pending:
+            return
+        if not force and not self._loops_pending and len(self._new_nodes) < UPDATE_EVERY:
             return
         t0 = time.perf_counter()
         priors = self.graph.priors[self._n_priors:]

@@ -193,3 +193,43 @@ def open_source(path: str | Path, topic: str | None = None, kitti_vertical_corre
     if (p / "velodyne").is_dir():
         return KittiSource(p, vertical_correction=kitti_vertical_correction)
     return FolderSource(p)
+
+
+def read_ahead(scans: Iterator[Scan], depth: int = 2) -> Iterator[Scan]:
+    """The same scans, in the same order, read up to `depth` ahead on a background thread, so
+    that file reading (NumPy releases the GIL there) overlaps with the processing of the scan
+    before. A reader error is raised here, at the scan where it happened."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def produce() -> None:
+        try:
+            for scan in scans:
+                while not stop.is_set():
+                    try:
+                        q.put(scan, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(done)
+        except BaseException as exc:  # handed to the consumer, raised there
+            q.put(exc)
+
+    thread = threading.Thread(target=produce, name="read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
