@@ -234,6 +234,12 @@ def test_simulate_then_run_round_trip(tmp_path, kitti_gt):
     assert run.returncode == 0, run.stderr
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["frames"] == 6 and summary["rpe_trans_m_mean"] < 0.3
+    # simulate follows the --out rule too: a second simulate into the folder needs --overwrite
+    again = ("simulate", kitti_gt / "poses" / "07.txt", "--calib", kitti_gt / "calib" / "07.txt",
+             "--out", out, "--n-scans", "3", "--sensor", "vlp16")
+    assert_one_line_error(lidar_slam(*again), "already holds files", "--overwrite")
+    assert lidar_slam(*again, "--overwrite").returncode == 0
+    assert len(list((out / "velodyne").glob("*.bin"))) == 3  # no stale scans left
 
 
 def test_optimize_and_eval_bad_input(tmp_path):

@@ -338,7 +338,7 @@ def parse_config_for(items: list[str]) -> dict[str, Path]:
             sys.exit(f"--config-for expects SEQNAME=FILE, got {item!r}")
         if not Path(path).is_file():
             sys.exit(f"--config-for {name}: {path} does not exist")
-        out[name] = Path(path)
+        out[name] = Path(path).resolve()  # the runs start in their own folders
     return out
 
 
