@@ -17,6 +17,7 @@ import numpy as np
 from kiss_icp.pybind import kiss_icp_pybind as kp
 
 from lidar_slam.config import SlamConfig
+from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import DeskewedScan
 from lidar_slam.geometry import interpolate
 
@@ -54,8 +55,7 @@ class VoxelSelector:
             return np.zeros(0, dtype=np.int64)
         # The range crop after the selection, on one point per voxel instead of every point: a
         # voxel cut by the range sphere may lose the point that the crop-first order kept.
-        r2 = np.einsum("ij,ij->i", chosen, chosen)
-        chosen = chosen[(r2 >= min_range_m**2) & (r2 <= max_range_m**2)]
+        chosen = chosen[range_mask(chosen, min_range_m, max_range_m)]
         return (np.ascontiguousarray(chosen[:, 0]).view(np.uint64) & _INDEX_MASK).astype(np.int64)
 
 

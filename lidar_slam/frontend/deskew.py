@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_slam.config import DataConfig
+from lidar_slam.frontend.crop import range_mask
 from lidar_slam.geometry import interpolate, rotvec_from_matrix
 from lidar_slam.types import Scan
 
@@ -95,8 +96,7 @@ class DeskewedScan:
         if self.selected_idx is not None and voxel_m == self.selected_voxel_m:
             # The registration points are this very selection over a wider range: reuse them.
             idx = self.selected_idx
-            r2 = np.einsum("ij,ij->i", self.points, self.points)
-            near = (r2 >= min_range_m**2) & (r2 <= max_range_m**2)
+            near = range_mask(self.points, min_range_m, max_range_m)
             return self.points[near], None if scan.intensity is None else scan.intensity[idx[near]]
         idx = self.select(scan.points, voxel_m, min_range_m, max_range_m)
         pts = scan.points[idx]
