@@ -56,7 +56,9 @@ def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logg
 UNITS = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m": "m",
          "map_points": "points", "rpe_trans_m_mean": "m", "rpe_rot_deg_mean": "deg",
          "end_drift_pct": "%", "ate_rmse_m": "m", "odometry_ate_rmse_m": "m",
-         "odometry_ms_per_frame": "ms", "loops_ms_per_frame": "ms"}
+         "odometry_ms_per_frame": "ms", "loops_ms_per_frame": "ms",
+         "loop_worker_ms_per_frame": "ms", "loop_wait_ms_per_frame": "ms",
+         "backend_ms_per_loop_max": "ms"}
 
 
 def _summary_table(summary: dict) -> str:

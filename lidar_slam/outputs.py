@@ -117,6 +117,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["fps"] = n / wall_s if wall_s > 0 else 0.0
     summary["odometry_ms_per_frame"] = 1e3 * result.seconds["odometry"] / max(n, 1)
     summary["loops_ms_per_frame"] = 1e3 * result.seconds["loops"] / max(n, 1)
+    if "loop_worker" in result.seconds:  # detection off the critical path: its cost, and
+        # how long the odometry waited for it
+        summary["loop_worker_ms_per_frame"] = 1e3 * result.seconds["loop_worker"] / max(n, 1)
+        summary["loop_wait_ms_per_frame"] = 1e3 * result.seconds["loop_wait"] / max(n, 1)
     if result.loop_update_s:
         summary["backend_ms_per_loop_max"] = 1e3 * max(s for _, s in result.loop_update_s)
     summary["peak_rss_mb"] = peak_rss_mb()

@@ -142,6 +142,8 @@ class Pipeline:
                 self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
             r.kf_poses = self.backend.finish()
             r.loop_update_s = self.backend.loop_update_s
+            r.seconds["loop_worker"] = self.loops.busy_s
+            r.seconds["loop_wait"] = self.loops.wait_s
             r.seconds["loops"] += time.perf_counter() - t0
         else:
             r.kf_poses = self.current_kf_poses()

@@ -8,8 +8,10 @@ is interpolated on SO(3) about the fixed axis of the motion, translation linearl
 
 Deskewing happens once, here, and only on the points that are used: one point per voxel of the
 odometry's input (what kiss-icp registers and adds to its map) and, at keyframes, one point per
-voxel of the keyframe cloud. Deskewing all ~120k points of an HDL-64E sweep cost more than the
-registration itself.
+voxel of the keyframe cloud (about 6k of the ~120k points of an HDL-64E sweep). In NumPy the
+deskew of every point is cheap (~2 ms), but the selection after it is not: selecting on the raw
+scan in kiss-icp's C++ and deskewing the selection took the odometry from 64 to 41 ms/frame on
+sim 07 (tools/compare_deskew.py).
 """
 
 from __future__ import annotations
