@@ -26,6 +26,13 @@ def _ply_header(n: int, intensity: bool) -> bytes:
     return ("\n".join(header) + "\n").encode("ascii")
 
 
+def write_ply(path: str | Path, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY with float32 x, y, z and an `intensity` property when given."""
+    with open(path, "wb") as fh:
+        fh.write(_ply_header(len(points), intensity is not None))
+        fh.write(_rows(points, intensity).tobytes())
+
+
 def _rows(points: np.ndarray, intensity: np.ndarray | None) -> np.ndarray:
     cols = [points.astype(np.float32)]
     if intensity is not None:
@@ -34,7 +41,7 @@ def _rows(points: np.ndarray, intensity: np.ndarray | None) -> np.ndarray:
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N,3) float64 and intensity (N,) or None of a PLY written by write_map."""
+    """Points (N,3) float64 and intensity (N,) or None of a PLY written by write_ply/write_map."""
     with open(path, "rb") as fh:
         header = []
         while not header or header[-1] != "end_header":
