@@ -89,7 +89,7 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
     constraints = pipe.backend.constraints if pipe.backend is not None else []
     meta = {"frames": len(r.indices), "keyframes": len(r.store), "deviations": n_dev,
             "loops_applied_upto": loops_applied_upto, "skipped_empty": r.skipped_empty,
-            "deskew": pipe.deskew.state(), "seconds": r.seconds,
+            "deskew": pipe.deskew.state(), "seconds": r.seconds, "adaptive": pipe.adaptive,
             "loop_records": [_record_json(x) for x in r.loops]}
     arrays = {
         "indices": np.asarray(r.indices, np.int64), "stamps_s": np.asarray(r.stamps_s),
@@ -100,6 +100,8 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "loop_T": np.array([c.T_match_query for c in constraints]).reshape(-1, 4, 4),
         "loop_info": np.array([c.information for c in constraints]).reshape(-1, 6, 6),
         "loop_fit": np.array([[c.fitness, c.rmse_m] for c in constraints]).reshape(-1, 2),
+        "backend_live": (pipe.backend.state() if pipe.backend is not None
+                         else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
         "meta": np.array(json.dumps(meta)),
     }
@@ -131,6 +133,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.frame_kf = [int(k) for k in a["frame_kf"]]
     r.skipped_empty = meta["skipped_empty"]
     r.seconds = meta["seconds"]
+    pipe.start(meta["adaptive"])
     if meta["frames"]:
         pipe.keyframes.last = a["selector_last"]
     pipe.deskew.restore(meta["deskew"])
@@ -152,7 +155,10 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
             pipe.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
             if kf_id in by_query:
                 pipe.backend.add_loop(by_query[kf_id])
-        pipe.backend.update()
+        if "backend_live" in a:
+            pipe.backend.restore_live(a["backend_live"])
+        else:  # a checkpoint from before the windowed back-end: re-solve the newest window
+            pipe.backend.update()
         pipe.loops.reindex(min(upto, len(r.store) - 1))
         for kf_id in range(max(upto + 1, 0), len(r.store)):
             pipe.loops.submit(kf_id)

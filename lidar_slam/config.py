@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from lidar_slam.errors import ConfigError, InputError
+from lidar_slam.io.atomic import write_text_atomic
+
+# Value ranges, checked when a config is loaded (a negative voxel size used to run, and quietly
+# change the result): lengths, angles, sigmas and thresholds are positive, counts at least 1.
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+Fraction = Annotated[float, Field(ge=0, le=1)]
+Count = Annotated[int, Field(ge=1)]
+NonNegativeInt = Annotated[int, Field(ge=0)]
+Auto = Literal["auto"]  # the value follows the data (lidar_slam.loop.adapt), fixed at scan 0
 
 
 class _Section(BaseModel):
@@ -16,8 +26,8 @@ class _Section(BaseModel):
 
 
 class DataConfig(_Section):
-    min_range_m: float = 0.0
-    max_range_m: float = 100.0
+    min_range_m: NonNegative = 0.0
+    max_range_m: Positive = 100.0
     # Deskew with per-point times (constant velocity) when the scans carry them. Done once, here.
     deskew: bool = True
     # Deskew every point of every scan (slow; for comparison): by default only the points used,
@@ -26,109 +36,163 @@ class DataConfig(_Section):
     # kiss-icp's 0.205 deg vertical correction for KITTI HDL-64E scans (KITTI layout only).
     kitti_vertical_correction: bool = False
 
+    @model_validator(mode="after")
+    def _range_is_not_empty(self) -> DataConfig:
+        if self.max_range_m <= self.min_range_m:
+            raise ValueError(f"max_range_m ({self.max_range_m}) must exceed min_range_m "
+                             f"({self.min_range_m})")
+        return self
+
 
 class OdometryConfig(_Section):
-    voxel_size_m: float | None = None  # default: max_range_m / 100, as kiss-icp
-    max_points_per_voxel: int = 20
-    initial_threshold_m: float = 2.0
-    min_motion_m: float = 0.1
-    max_num_iterations: int = 500
-    convergence_criterion: float = 1e-4
-    max_num_threads: int = 0
+    voxel_size_m: Positive | None = None  # default: max_range_m / 100, as kiss-icp
+    max_points_per_voxel: Count = 20
+    initial_threshold_m: Positive = 2.0
+    min_motion_m: NonNegative = 0.1
+    max_num_iterations: Count = 500
+    convergence_criterion: Positive = 1e-4
+    max_num_threads: NonNegativeInt = 0
 
 
 class KeyframeConfig(_Section):
-    distance_m: float = 2.0
-    rotation_deg: float = 15.0
-    cloud_voxel_m: float = 0.5
+    # "auto": the descriptor radius / 40, in 0.5 m steps, 0.5-2 m (1 m indoors, 2 m outdoors).
+    distance_m: Positive | Auto = "auto"
+    rotation_deg: Positive = 15.0
+    cloud_voxel_m: Positive = 0.5
 
 
 class ScanContextConfig(_Section):
-    rings: int = 20
-    sectors: int = 60
-    max_radius_m: float = 80.0
-    sensor_height_m: float = 2.0
-    candidates: int = 10
-    threshold: float = 0.3
-    exclude_recent: int = 30
-    local_search_sectors: int = 2
+    rings: Count = 20
+    sectors: Count = 60
+    # "auto": 1.5 x the horizontal range within which 99 % of the first scan's points lie,
+    # rounded up to 10 m, 20-80 m (an 80 m descriptor puts a whole room in 3-4 rings).
+    max_radius_m: Positive | Auto = "auto"
+    sensor_height_m: Positive = 2.0
+    candidates: Count = 10
+    threshold: Positive = 0.3
+    # A keyframe is not a loop candidate of a newer one until the sensor has travelled
+    # exclude_recent_m of path since it ("auto": 0.75 x the descriptor radius) or
+    # exclude_recent_s seconds have passed.
+    exclude_recent_m: NonNegative | Auto = "auto"
+    exclude_recent_s: NonNegative = 60.0
+    local_search_sectors: NonNegativeInt = 2
     # Level each cloud on its fitted ground plane before binning (hand-held / tilted sensors); the
     # yaw guess is then about the ground normal. Bins use the fitted sensor height when found.
     level_to_ground: bool = True
-    max_tilt_deg: float = 30.0
+    max_tilt_deg: Positive = 30.0
 
 
 class VerifyConfig(_Section):
     method: Literal["point_to_plane", "gicp"] = "point_to_plane"
-    voxel_m: float = 0.5
-    submap_radius: int = 2
+    voxel_m: Positive = 0.5
+    submap_radius: NonNegativeInt = 2
     # Coarse stage (every yaw hypothesis): clouds at coarse_voxel_m, correspondences up to
     # coarse_correspondence_m then half of it, to pull in the few metres between revisits.
-    coarse_voxel_m: float = 1.5
-    coarse_correspondence_m: float = 3.0
+    coarse_voxel_m: Positive = 1.5
+    coarse_correspondence_m: Positive = 3.0
     # Hypotheses are ranked (and the margin taken) by coarse fitness: share of coarse query
     # points within coarse_inlier_m of the match after the coarse stage.
-    coarse_inlier_m: float = 0.5
+    coarse_inlier_m: Positive = 0.5
     # The winner is re-aligned from starts pushed this far sideways (0: off); a different pose
     # found that way competes in the margin like another yaw hypothesis.
-    probe_shift_m: float = 4.0
+    probe_shift_m: NonNegative = 4.0
     # Fine stage at voxel_m.
-    max_correspondence_m: float = 0.6
+    max_correspondence_m: Positive = 0.6
     # Query points used (a fixed random subset beyond this; 0 = all) in the coarse / fine stage.
-    coarse_max_points: int = 500
-    fine_max_points: int = 4000
-    min_fitness: float = 0.5
+    coarse_max_points: NonNegativeInt = 500
+    fine_max_points: NonNegativeInt = 4000
+    min_fitness: Fraction = 0.5
     # RMSE of the inliers (so at most inlier_m): a loose guard; ~0.19 m for true loops here.
-    max_rmse_m: float = 0.25
+    max_rmse_m: Positive = 0.25
     # ICP may turn at most this far from the yaw hypothesis it started at (the yaw guess plus a
     # multiple of 90 deg): a guess a few sectors off must still pass, a slide must not.
-    max_yaw_disagreement_deg: float = 30.0
+    max_yaw_disagreement_deg: Positive = 30.0
     try_yaw_offsets: bool = True
     # Fitness = share of query points with a match point within inlier_m after ICP.
-    inlier_m: float = 0.3
+    inlier_m: Positive = 0.3
     # The best hypothesis must beat the best *different* converged pose by this much coarse fitness.
-    min_margin: float = 0.12
-    max_translation_m: float = 10.0
-    max_iterations: int = 20
+    min_margin: Fraction = 0.12
+    max_translation_m: Positive = 10.0
+    max_iterations: Count = 20
     # Level both clouds on their ground planes to build the yaw hypotheses about gravity.
     level_to_ground: bool = True
     # The information matrix keeps the shape of the point-to-plane Hessian but is scaled down
     # so that no direction is more certain than these (residuals of neighbouring points correlate).
-    info_min_trans_sigma_m: float = 0.02
-    info_min_rot_sigma_deg: float = 0.2
+    info_min_trans_sigma_m: Positive = 0.02
+    info_min_rot_sigma_deg: Positive = 0.2
 
 
 class BackendConfig(_Section):
-    odom_rot_sigma_deg: float = 0.1
-    odom_trans_sigma_m: float = 0.05
-    prior_rot_sigma_deg: float = 1e-3
-    prior_trans_sigma_m: float = 1e-3
-    huber_k: float = 1.345
-    max_iterations: int = 100
+    odom_rot_sigma_deg: Positive = 0.1
+    odom_trans_sigma_m: Positive = 0.05
+    prior_rot_sigma_deg: Positive = 1e-3
+    prior_trans_sigma_m: Positive = 1e-3
+    huber_k: Positive = 1.345
+    max_iterations: Count = 100
+    # Newest keyframes that a loop corrects while the drive goes on (bounded cost per loop);
+    # the final full solve corrects every keyframe.
+    window_keyframes: Count = 100
+    # Loop kernel of the final full solve: huber (huber_k), or gnc (graduated non-convexity,
+    # truncated least squares; odometry edges are known inliers, wrong loops get weight 0).
+    # The live (window) solution keeps Huber either way.
+    robust: Literal["none", "huber", "gnc"] = "huber"
+    # The final solve also starts from a global initialisation (gtsam InitializePose3) and keeps
+    # it when it ends at a lower error than the one started at the live estimate.
+    global_init: bool = True
 
 
 class LoopConfig(_Section):
     enabled: bool = True
     # Candidates verified per keyframe query (best descriptor distance first).
-    max_verify: int = 3
+    max_verify: Count = 3
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs
     # are deterministic.
     worker: Literal["process", "thread", "inline"] = "process"
-    collect_lag_keyframes: int = 10
+    collect_lag_keyframes: NonNegativeInt = 10
     scan_context: ScanContextConfig = ScanContextConfig()
     verify: VerifyConfig = VerifyConfig()
 
 
 class MapConfig(_Section):
-    voxel_size_m: float = 0.2
-    max_range_m: float = 60.0
+    voxel_size_m: Positive = 0.2
+    max_range_m: Positive = 60.0
+
+
+class LocalizeConfig(_Section):
+    """`lidar-slam localize`: tracking gates against the fixed map, and relocalisation."""
+
+    # Tracking: point-to-plane ICP of the scan (one point per source_voxel_m) against the map's
+    # clouds (one point per map_voxel_m), correspondences up to max_correspondence_m (first up
+    # to coarse_correspondence_m while the motion is not yet measured).
+    map_voxel_m: Positive = 0.5
+    # The target: the clouds of the keyframe nearest to the prediction, of submap_behind
+    # keyframes before it and submap_ahead after it (what the map run had mapped when it passed).
+    submap_behind: NonNegativeInt = 3
+    submap_ahead: NonNegativeInt = 1
+    source_voxel_m: Positive = 1.0
+    max_correspondence_m: Positive = 1.0
+    coarse_correspondence_m: Positive = 3.0
+    max_iterations: Count = 20
+    # A tracked frame is kept when the share of its registration points above the ground
+    # (structure, not road: the road matches anywhere along it) that lie within inlier_m of a
+    # map point reaches min_fitness...
+    inlier_m: Positive = 0.5
+    min_fitness: Fraction = 0.5
+    structure_min_height_m: NonNegative = 0.5
+    # ...and the registration moved the motion model's prediction by at most this much.
+    max_correction_m: Positive = 1.0
+    max_correction_deg: Positive = 5.0
+    # After this many frames without a good registration, stop predicting and only relocalise.
+    max_predicted_frames: NonNegativeInt = 3
+    # Scan Context candidates verified (loop.verify gates) per relocalisation attempt.
+    max_verify: Count = 3
 
 
 class CheckpointConfig(_Section):
     # A checkpoint (for `run --resume`) every this many keyframes; 0 = none.
-    every_keyframes: int = 100
+    every_keyframes: NonNegativeInt = 100
 
 
 class SlamConfig(_Section):
@@ -139,6 +203,7 @@ class SlamConfig(_Section):
     backend: BackendConfig = BackendConfig()
     map: MapConfig = MapConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
+    localize: LocalizeConfig = LocalizeConfig()
 
     def voxel_size_m(self) -> float:
         """Effective odometry voxel size in metres."""
@@ -176,9 +241,19 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
-        raise ConfigError(f"{path or 'config'}: {where}: {err['msg']}") from exc
+        got = f" (got {err['input']!r})" if err["type"].endswith(("_than", "_equal")) else ""
+        raise ConfigError(f"{path or 'config'}: {where}: {err['msg']}{got}") from exc
 
 
 def dump_config(config: SlamConfig, path: str | Path) -> None:
     """Write the effective config as YAML."""
-    Path(path).write_text(yaml.safe_dump(config.model_dump(), sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(config.model_dump(), sort_keys=False))
+
+
+def overlay_config(base: SlamConfig, path: str | Path) -> SlamConfig:
+    """base overlaid by the YAML file at path (only the keys the file sets)."""
+    overlay = load_config(path).model_dump(exclude_unset=True)
+    try:
+        return SlamConfig(**_merge(base.model_dump(), overlay))
+    except ValidationError as exc:  # load_config validated the file alone; this cannot fail
+        raise ConfigError(f"{path}: {exc.errors()[0]['msg']}") from exc

@@ -20,3 +20,7 @@ class InputError(LidarSlamError):
 
 class ConfigError(LidarSlamError):
     """An invalid configuration file or value."""
+
+
+class SolveError(LidarSlamError):
+    """A pose-graph solve that cannot be done (e.g. a global initialisation gtsam rejects)."""

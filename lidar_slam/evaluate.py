@@ -1,13 +1,20 @@
-"""Evaluate an estimated trajectory against ground truth: metrics.json, a table, two PNG plots.
+"""Evaluate an estimated trajectory against ground truth: metrics.json, a table, PNG plots.
 
 Frames: the estimate is assumed to be in the lidar frame already (T_world_lidar, as the pipeline
 writes it). KITTI ground truth is in the left camera (cam0) frame; with calib_path it is moved to
 the lidar frame as T_world_lidar(i) = inv(Tr) @ P_i @ Tr. Without calib both are compared as given.
+
+Pairing: each file is KITTI (12 numbers per line) or TUM (stamp + 7), told by its columns unless a
+format is forced, and the two may differ. When both carry stamps (TUM, or KITTI ground truth with
+its times file) poses are paired by nearest stamp; otherwise line by line, estimate line k with
+ground-truth line start + k, where start is the --start the run was made with (loops.csv numbers
+frames the same way: input scan positions).
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass
@@ -18,10 +25,12 @@ import numpy as np
 from lidar_slam import metrics
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import from_xyz_quat, inverse
+from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,
     read_kitti_calib_tr,
     read_kitti_poses,
+    read_times,
     read_tum,
 )
 
@@ -33,11 +42,23 @@ LOOP_POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")  # as loops.csv writ
 
 @dataclass(frozen=True)
 class Associated:
-    """Estimate and GT poses paired frame by frame; est_rows[k] is the estimate row of pair k."""
+    """Estimate and GT poses paired frame by frame; est_rows[k] is the estimate row of pair k,
+    frames[k] its input scan position (est_rows + the run's start); `pairing` says how."""
 
     est: np.ndarray
     gt: np.ndarray
     est_rows: np.ndarray
+    frames: np.ndarray
+    pairing: str
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Poses (K, 4, 4) of a trajectory file, with stamps (K,) in s when the file has them."""
+
+    poses: np.ndarray
+    stamps: np.ndarray | None
+    fmt: str
 
 
 @dataclass(frozen=True)
@@ -54,30 +75,79 @@ def _check_finite(path: str | Path, poses: np.ndarray) -> None:
         raise InputError(path, "pose file contains NaN or infinite values")
 
 
-def load_associated(est_path: str | Path, gt_path: str | Path, fmt: str = "kitti",
-                    max_time_diff_s: float = 0.01) -> Associated:
-    """Read both trajectories; KITTI: same line count; TUM: nearest stamps within max_diff."""
+def trajectory_format(path: str | Path) -> str:
+    """'kitti' (12 numbers per line) or 'tum' (8), from the first data line of the file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "pose file does not exist")
+    try:
+        with p.open() as fh:
+            line = next((ln for ln in fh if ln.strip() and not ln.startswith("#")), "")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"unreadable pose file ({exc})") from exc
+    n = len(line.replace(",", " ").split())
+    if n == 12:
+        return "kitti"
+    if n == 8:
+        return "tum"
+    if not line:
+        raise InputError(p, "pose file is empty")
+    raise InputError(p, f"{n} numbers per line: neither KITTI (12) nor TUM (8: stamp tx ty tz "
+                        f"qx qy qz qw)")
+
+
+def read_trajectory(path: str | Path, fmt: str = "auto",
+                    times_path: str | Path | None = None) -> Trajectory:
+    """A KITTI or TUM file (fmt 'auto': told by its columns); times_path gives a KITTI file the
+    stamps of its lines (one per line, as KITTI's times.txt)."""
+    fmt = trajectory_format(path) if fmt == "auto" else fmt
     if fmt == "kitti":
-        est, gt = read_kitti_poses(est_path), read_kitti_poses(gt_path)
-        if len(est) != len(gt):
-            raise InputError(est_path, f"{len(est)} poses but the ground truth {gt_path} has "
-                                       f"{len(gt)} (KITTI files must match line for line)")
-        rows = np.arange(len(est))
+        poses, stamps = read_kitti_poses(path), None
     elif fmt == "tum":
-        (t_est, est), (t_gt, gt) = read_tum(est_path), read_tum(gt_path)
-        rows, gt_rows = _associate(t_est, t_gt, max_time_diff_s)
+        stamps, poses = read_tum(path)
+    else:
+        raise InputError(path, f"unknown trajectory format {fmt!r} (auto, kitti or tum)")
+    if times_path is not None and stamps is None:
+        stamps = read_times(times_path)
+        if stamps.ndim != 1 or len(stamps) != len(poses):
+            raise InputError(times_path, f"{len(stamps)} stamps for the {len(poses)} poses of "
+                                         f"{path}")
+    _check_finite(path, poses)
+    return Trajectory(poses, stamps, fmt)
+
+
+def load_associated(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
+                    start: int | None = None, gt_times: str | Path | None = None,
+                    max_time_diff_s: float = 0.01) -> Associated:
+    """Read both trajectories and pair them: by nearest stamp (within max_time_diff_s) when both
+    have stamps, else line by line from ground-truth line `start` (the run's --start)."""
+    est_t = read_trajectory(est_path, fmt)
+    gt_t = read_trajectory(gt_path, fmt, gt_times)
+    offset = start or 0
+    if est_t.stamps is not None and gt_t.stamps is not None:
+        rows, gt_rows = _associate(est_t.stamps, gt_t.stamps, max_time_diff_s)
         if len(rows) < 2:
             raise InputError(est_path, f"only {len(rows)} stamps match {gt_path} within "
                                        f"{max_time_diff_s} s")
-        log.info("associated %d of %d estimated poses with ground truth", len(rows), len(est))
-        est, gt = est[rows], gt[gt_rows]
+        log.info("associated %d of %d estimated poses with ground truth", len(rows),
+                 len(est_t.poses))
+        pairing = f"by stamp ({len(rows)} of {len(est_t.poses)} estimated poses)"
+        est, gt = est_t.poses[rows], gt_t.poses[gt_rows]
     else:
-        raise InputError(est_path, f"unknown trajectory format {fmt!r} (kitti or tum)")
-    _check_finite(est_path, est)
-    _check_finite(gt_path, gt)
+        est, n_gt = est_t.poses, len(gt_t.poses)
+        if start is None and len(est) != n_gt:
+            raise InputError(est_path, f"{len(est)} poses but the ground truth {gt_path} has "
+                                       f"{n_gt}; line-by-line files must match, or pass --start "
+                                       f"N for a run made with --start N / --n-scans")
+        if offset + len(est) > n_gt:
+            raise InputError(est_path, f"{len(est)} poses from ground-truth line {offset} need "
+                                       f"{offset + len(est)} lines; {gt_path} has {n_gt}")
+        rows = np.arange(len(est))
+        gt = gt_t.poses[offset:offset + len(est)]
+        pairing = f"line by line (ground-truth lines {offset}..{offset + len(est) - 1})"
     if len(est) < 2:
         raise InputError(est_path, f"{len(est)} pose(s); the metrics need at least 2")
-    return Associated(est, gt, rows)
+    return Associated(est, gt, rows, rows + offset, pairing)
 
 
 def _associate(t_est: np.ndarray, t_gt: np.ndarray, max_diff_s: float) -> tuple[np.ndarray,
@@ -130,11 +200,12 @@ def read_loops_csv(path: str | Path) -> AcceptedLoops:
     return AcceptedLoops(pairs, T, len(rows))
 
 
-def _loop_metrics(loops_csv: str | Path, assoc: Associated) -> tuple[dict, np.ndarray,
-                                                                      np.ndarray]:
-    """Loop precision/recall entries; also the scored pairs (positions in assoc) and correctness."""
+def _loop_metrics(loops_csv: str | Path, assoc: Associated, revisit_gap: int
+                  ) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Loop precision/recall entries; also the scored pairs (positions in assoc) and correctness.
+    A revisit is a return within 5 m to a place passed more than revisit_gap frames before."""
     loops = read_loops_csv(loops_csv)
-    to_pos = {int(r): k for k, r in enumerate(assoc.est_rows)}
+    to_pos = {int(f): k for k, f in enumerate(assoc.frames)}
     keep = np.array([int(q) in to_pos and int(m) in to_pos for q, m in loops.pairs], dtype=bool)
     n_unmatched = int((~keep).sum())
     if n_unmatched:
@@ -149,7 +220,7 @@ def _loop_metrics(loops_csv: str | Path, assoc: Associated) -> tuple[dict, np.nd
         # No measured relative pose in the file: judge the final trajectory between the frames.
         T = inverse(assoc.est[pairs[:, 1]]) @ assoc.est[pairs[:, 0]]
         source = "estimated trajectory"
-    s = metrics.loop_precision_recall(pairs, T, assoc.gt)
+    s = metrics.loop_precision_recall(pairs, T, assoc.gt, min_frame_gap=revisit_gap)
     out = {
         "loop_pose_source": source,
         "loops_proposed": loops.n_rows,
@@ -163,19 +234,46 @@ def _loop_metrics(loops_csv: str | Path, assoc: Associated) -> tuple[dict, np.nd
         "revisit_events_found": s.n_revisit_events_found,
         "revisit_frames": s.n_revisit_frames,
         "revisit_frames_covered": s.n_revisit_frames_covered,
+        "revisit_gap_frames": revisit_gap,
     }
     return out, pairs, s.correct
 
 
-def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "kitti",
+def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
              calib_path: str | Path | None = None, out_dir: str | Path | None = None,
-             loops_csv: str | Path | None = None) -> dict:
-    """All metrics of one trajectory (t_err %, r_err deg/100 m, ATE m, RPE m/deg, loops)."""
-    assoc = load_associated(est_path, gt_path, fmt)
+             loops_csv: str | Path | None = None, start: int | None = None,
+             gt_times: str | Path | None = None, revisit_gap: int = 100) -> dict:
+    """All metrics of one trajectory (t_err %, r_err deg/100 m, ATE m, RPE m/deg, loops).
+
+    start: the run's --start (ground-truth line of the estimate's first pose, and the offset of
+    loops.csv frame numbers); gt_times: stamps of a KITTI ground truth, to pair it with a TUM
+    estimate by time; revisit_gap: frames between two passes for loop recall to count a revisit.
+    """
+    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise InputError(out_dir, "--out is a file, not a folder")
+    assoc = load_associated(est_path, gt_path, fmt, start=start, gt_times=gt_times)
     if calib_path is not None:
         gt = camera_to_lidar_poses(assoc.gt, read_kitti_calib_tr(calib_path))
-        assoc = Associated(assoc.est, gt, assoc.est_rows)
+        assoc = dataclasses.replace(assoc, gt=gt)
     est, gt = assoc.est, assoc.gt
+    out = trajectory_metrics(est, gt)
+    out["gt_frame"] = "lidar (GT moved with calib Tr)" if calib_path else "as given"
+    out["pairing"] = assoc.pairing
+    pairs, correct = np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=bool)
+    if loops_csv is not None:
+        loop_out, pairs, correct = _loop_metrics(loops_csv, assoc, revisit_gap)
+        out.update(loop_out)
+    if out_dir is not None:
+        d = Path(out_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(d / "metrics.json", json.dumps(out, indent=2) + "\n")
+        write_plots(d, est, gt, pairs, correct)
+    return out
+
+
+def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict:
+    """KITTI drift (t_err %, r_err deg/100 m; None under 100 m of path), ATE (m) and RPE (m, deg)
+    of est against gt, both (K, 4, 4) and paired frame by frame."""
     drift = metrics.kitti_drift(est, gt)
     a = metrics.ate(est, gt)
     r = metrics.rpe(est, gt)
@@ -195,7 +293,6 @@ def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "kitti",
         "n_frames": len(est),
         "path_length_m": drift.gt_path_length_m,
         "est_path_length_m": float(metrics.path_distances_m(est)[-1]),
-        "gt_frame": "lidar (GT moved with calib Tr)" if calib_path else "as given",
         "drift_by_length": [
             {"length_m": b.length_m, "t_err_pct": b.t_err_pct,
              "r_err_deg_per_100m": b.r_err_deg_per_100m, "segments": b.n_segments}
@@ -209,20 +306,28 @@ def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "kitti",
         out["warning"] = (f"per-frame RPE {r.trans_m_mean:.3f} m vs mean step {mean_step_m:.3f} m:"
                           " estimate and ground truth are probably in different sensor frames")
         log.warning(out["warning"])
-    pairs, correct = np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=bool)
-    if loops_csv is not None:
-        loop_out, pairs, correct = _loop_metrics(loops_csv, assoc)
-        out.update(loop_out)
-    if out_dir is not None:
-        d = Path(out_dir)
-        d.mkdir(parents=True, exist_ok=True)
-        (d / "metrics.json").write_text(json.dumps(out, indent=2) + "\n")
-        plot_top_view(d / "trajectory_top.png", est, gt, pairs, correct)
-        plot_error_vs_distance(d / "error_vs_distance.png", metrics.error_vs_distance(est, gt))
     return out
 
 
+def write_plots(out_dir: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray | None = None,
+                correct: np.ndarray | None = None) -> None:
+    """The top view (with the scored loops), error against distance and, with 100 m of path or
+    more, drift against segment length, as PNGs in out_dir."""
+    pairs = np.zeros((0, 2), dtype=np.int64) if pairs is None else pairs
+    correct = np.zeros(0, dtype=bool) if correct is None else correct
+    plot_top_view(out_dir / "trajectory_top.png", est, gt, pairs, correct)
+    plot_error_vs_distance(out_dir / "error_vs_distance.png", metrics.error_vs_distance(est, gt))
+    drift = metrics.kitti_drift(est, gt)
+    if drift.by_length:
+        plot_drift_vs_length(out_dir / "drift_vs_length.png", drift.by_length)
+
+
 # ----------------------------------------------------------------------------------- plots
+
+
+def _save(fig, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
 
 
 def _top_axes(gt: np.ndarray) -> tuple[int, int]:
@@ -255,7 +360,7 @@ def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray
     ax.set_ylabel(f"{'xyz'[j]} [m]")
     ax.legend(loc="best", fontsize=8)
     ax.set_title("top view (estimate started at the ground truth's first pose)")
-    fig.savefig(path, dpi=120)
+    _save(fig, path)
 
 
 def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance) -> None:
@@ -272,7 +377,30 @@ def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance) -> None:
     ax.set_title("position error, both trajectories expressed in their first pose")
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    _save(fig, path)
+
+
+def plot_drift_vs_length(path: Path, by_length) -> None:
+    """The KITTI devkit's figure: translation (%) and rotation (deg/100 m) drift averaged over
+    the segments of each length (100 .. 800 m)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    lengths = [b.length_m for b in by_length]
+    fig = Figure(figsize=(9, 3.8))
+    FigureCanvasAgg(fig)
+    for k, (values, label) in enumerate((
+            ([b.t_err_pct for b in by_length], "translation error [%]"),
+            ([b.r_err_deg_per_100m for b in by_length], "rotation error [deg/100 m]"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        ax.plot(lengths, values, "bs-", lw=1.0, ms=4)
+        ax.set_xlabel("path length [m]")
+        ax.set_ylabel(label)
+        ax.set_ylim(bottom=0)
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("drift against segment length (KITTI devkit segments)")
+    fig.tight_layout()
+    _save(fig, path)
 
 
 # ----------------------------------------------------------------------------------- table
@@ -326,7 +454,7 @@ def format_table(m: dict) -> str:
             digits = 4 if unit in ("m", "deg") and abs(value) < 1 else 3
             text = f"{value:.{digits}f} {unit}".rstrip()
         lines.append(f"{_LABELS[key]:<34} {text}")
-    for key in ("note", "warning"):
+    for key in ("pairing", "note", "warning"):
         if m.get(key):
             lines.append(f"{key:<34} {m[key]}")
     if "loops_accepted" in m:

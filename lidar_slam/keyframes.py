@@ -2,16 +2,28 @@
 
 The store keeps every keyframe's cloud on disk in the run folder, so memory does not grow with the
 drive; only a small table (ids, frames, odometry poses) and a bounded cache of recent clouds stay
-in RAM. Layout (version 1), under RUN/keyframes/:
+in RAM. At the end of a run the same folder becomes the run's reusable map (`lidar-slam
+localize --map`, `lidar-slam export`). Layout (version 3), under RUN/keyframes/:
 
 - `manifest.json`: {"version", "keyframes", "points"}: how many table rows and points are valid
-  when the run last flushed the store (at every checkpoint and at the end of the run).
+  when the run last flushed the store (at every checkpoint and at the end of the run); at the end
+  of the run also "map" (see below).
 - `table.bin`: one record per keyframe, little-endian: id int64, frame_index int64, first point
-  int64, point count int64, T_world_kf_odom (4x4 float64, row-major), has_intensity uint8.
+  int64, point count int64, T_world_kf_odom (4x4 float64, row-major), has_intensity uint8,
+  stamp_s float64 (the scan's stamp, NaN when unknown; version 3 added it).
 - `points.bin`: float32 x, y, z, intensity per point (metres, the keyframe's sensor frame at
   its scan's stamp), keyframe after keyframe.
+- `map_poses.bin` (end of the run): T_map_kf per keyframe, 4x4 float64 row-major little-endian,
+  in keyframe order: the final (loop-corrected) poses in the map frame, which is the frame of
+  the run's `poses_kitti.txt` (frame 0 = identity), the frame `map.ply` is in.
+- `descriptors.bin` (runs with loop closure): the Scan Context grid (rings x sectors float32,
+  row-major; config in ../config.yaml, `loop.scan_context`) of every keyframe with a non-empty
+  cloud, in keyframe order; `manifest["map"]["descriptor_rows"]` of them are valid (a reader
+  computes the others from the clouds).
 
-The same layout is what a later command (resume, localise, export) opens.
+manifest["map"] = {"frame": "poses_kitti.txt", "poses": "map_poses.bin", "descriptors":
+"descriptors.bin" or null, "descriptor_rows": int, "config": "../config.yaml"}. A store without
+it (a run still going, or killed) is not a map.
 """
 
 from __future__ import annotations
@@ -30,9 +42,12 @@ from lidar_slam.errors import InputError
 from lidar_slam.geometry import relative, rotation_angle_deg
 from lidar_slam.types import Keyframe
 
-STORE_VERSION = 1
+STORE_VERSION = 3
+READABLE_VERSIONS = (3,)  # 3: stamps in the table (2: end-of-run map, 1: neither)
+MAP_POSES = "map_poses.bin"
+DESCRIPTORS = "descriptors.bin"
 TABLE_DTYPE = np.dtype([("id", "<i8"), ("frame_index", "<i8"), ("first", "<i8"), ("count", "<i8"),
-                        ("T", "<f8", (4, 4)), ("has_intensity", "u1")])
+                        ("T", "<f8", (4, 4)), ("has_intensity", "u1"), ("stamp_s", "<f8")])
 POINT_DTYPE = np.dtype("<f4")  # 4 per point: x, y, z, intensity
 
 
@@ -109,16 +124,14 @@ class KeyframeStore:
             manifest = json.loads(path.read_text())
         except ValueError as exc:
             raise InputError(path, f"not valid JSON ({exc})") from exc
-        if manifest.get("version") != STORE_VERSION:
-            raise InputError(path, f"keyframe store version {manifest.get('version')}, "
-                             f"this lidar-slam reads version {STORE_VERSION}")
+        check_version(path, manifest)
         return manifest
 
     def __len__(self) -> int:
         return self._n
 
     def add(self, frame_index: int, T_world_kf_odom: np.ndarray, points: np.ndarray,
-            intensity: np.ndarray | None) -> Keyframe:
+            intensity: np.ndarray | None, stamp_s: float = np.nan) -> Keyframe:
         """Append a keyframe (points (K,3) in its frame at the stamp); returns it with its id."""
         kf_id = self._n
         rows = np.zeros((len(points), 4), dtype=POINT_DTYPE)
@@ -128,7 +141,7 @@ class KeyframeStore:
         os.write(self._points_fd, rows.tobytes())
         rec = np.zeros(1, dtype=TABLE_DTYPE)
         rec[0] = (kf_id, frame_index, self._n_points, len(points), T_world_kf_odom,
-                  intensity is not None)
+                  intensity is not None, stamp_s)
         os.write(self._table_fd, rec.tobytes())
         with self._lock:
             if self._n == len(self._table):
@@ -155,6 +168,10 @@ class KeyframeStore:
     def frame_index(self, kf_id: int) -> int:
         return int(self._table[kf_id]["frame_index"])
 
+    def stamp_s(self, kf_id: int) -> float:
+        """The stamp (s) of keyframe kf_id's scan (NaN when unknown)."""
+        return float(self._table[kf_id]["stamp_s"])
+
     def table(self) -> np.ndarray:
         """A copy of the valid table rows (structured array, TABLE_DTYPE)."""
         with self._lock:
@@ -174,12 +191,25 @@ class KeyframeStore:
         self._remember(kf)
         return kf
 
-    def flush(self) -> None:
-        """Make everything added so far durable and vouched for by the manifest (atomic)."""
+    def flush(self, T_map_kf: np.ndarray | None = None, descriptor_rows: int = 0) -> None:
+        """Make everything added so far durable and vouched for by the manifest (atomic). With
+        T_map_kf (K, 4, 4), the final pose of every keyframe in the map frame (end of a run),
+        the store is also written out as a map (map_poses.bin and the manifest's "map")."""
+        manifest: dict = {"version": STORE_VERSION, "keyframes": self._n,
+                          "points": self._n_points}
+        if T_map_kf is not None:
+            if len(T_map_kf) != self._n:
+                raise ValueError(f"{len(T_map_kf)} map poses for {self._n} keyframes")
+            write_atomic(self.root / MAP_POSES,
+                         np.ascontiguousarray(T_map_kf, dtype="<f8").tobytes())
+            has_descriptors = (self.root / DESCRIPTORS).is_file()
+            manifest["map"] = {"frame": "poses_kitti.txt", "poses": MAP_POSES,
+                               "descriptors": DESCRIPTORS if has_descriptors else None,
+                               "descriptor_rows": descriptor_rows if has_descriptors else 0,
+                               "config": "../config.yaml"}
         os.fsync(self._points_fd)
         os.fsync(self._table_fd)
-        write_atomic(self.root / "manifest.json", json.dumps(
-            {"version": STORE_VERSION, "keyframes": self._n, "points": self._n_points}) + "\n")
+        write_atomic(self.root / "manifest.json", json.dumps(manifest) + "\n")
 
     def close(self) -> None:
         for fd in (self._table_fd, self._points_fd, self._read_fd):
@@ -220,6 +250,9 @@ class KeyframeReader:
     def frame_index(self, kf_id: int) -> int:
         return int(self._record(kf_id)["frame_index"])
 
+    def stamp_s(self, kf_id: int) -> float:
+        return float(self._record(kf_id)["stamp_s"])
+
     def get(self, kf_id: int) -> Keyframe:
         kf = self._cache.get(kf_id)
         if kf is None:
@@ -233,6 +266,13 @@ class KeyframeReader:
     def close(self) -> None:
         os.close(self._table_fd)
         os.close(self._points_fd)
+
+
+def check_version(path: Path, manifest: dict) -> None:
+    """Refuse a manifest of a layout version this lidar-slam cannot read."""
+    if manifest.get("version") not in READABLE_VERSIONS:
+        raise InputError(path, f"keyframe store version {manifest.get('version')}, this "
+                         f"lidar-slam reads versions {', '.join(map(str, READABLE_VERSIONS))}")
 
 
 def write_atomic(path: str | Path, text: str | bytes) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.geometry import transform_points
+from lidar_slam.io.atomic import atomic_path
 from lidar_slam.keyframes import KeyframeStore
 
 TILE_VOXELS = 500  # tile side in voxels (100 m at 0.2 m)
@@ -27,8 +28,9 @@ def _ply_header(n: int, intensity: bool) -> bytes:
 
 
 def write_ply(path: str | Path, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY with float32 x, y, z and an `intensity` property when given."""
-    with open(path, "wb") as fh:
+    """Binary little-endian PLY with float32 x, y, z and an `intensity` property when given
+    (written atomically)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(_ply_header(len(points), intensity is not None))
         fh.write(_rows(points, intensity).tobytes())
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import resource
 from pathlib import Path
 
@@ -11,10 +12,13 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig, dump_config
 from lidar_slam.geometry import inverse
+from lidar_slam.io.atomic import atomic_path
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
-from lidar_slam.keyframes import write_atomic
+from lidar_slam.keyframes import DESCRIPTORS, KeyframeStore, write_atomic
 from lidar_slam.mapping import write_map
 from lidar_slam.pipeline import RunResult
+
+log = logging.getLogger(__name__)
 
 
 def peak_rss_mb() -> float:
@@ -54,12 +58,27 @@ def write_loops(out_dir: Path, result: RunResult) -> dict:
     """loops.csv and graph.g2o; returns the loop counts for the summary."""
     from lidar_slam.loop.closer import loops_csv_rows
 
-    with open(out_dir / "loops.csv", "w", newline="") as fh:
-        csv.writer(fh).writerows(loops_csv_rows(result.loops))
+    with atomic_path(out_dir / "loops.csv") as tmp, open(tmp, "w", newline="") as fh:
+        csv.writer(fh).writerows(loops_csv_rows(result.loops, result.loop_backend))
     if result.graph is not None:
         result.graph.write_g2o(out_dir / "graph.g2o")
     return {"loops_candidates": len(result.loops),
-            "loops_accepted": sum(1 for r in result.loops if r.accepted)}
+            "loops_accepted": sum(1 for r in result.loops if r.accepted),
+            "loops_backend_rejected": sum(s == "rejected" for s in result.loop_backend.values())}
+
+
+def write_map_manifest(store: KeyframeStore, T_map_kf: dict[int, np.ndarray],
+                       cfg: SlamConfig) -> None:
+    """Make the run's keyframe store a reusable map (see lidar_slam.keyframes): the final
+    keyframe poses in the map frame and the manifest that vouches for them."""
+    if len(T_map_kf) != len(store):
+        log.warning("no map manifest: %d final poses for %d keyframes", len(T_map_kf),
+                    len(store))
+        return
+    sc = cfg.loop.scan_context
+    descriptors = store.root / DESCRIPTORS
+    rows = descriptors.stat().st_size // (4 * sc.rings * sc.sectors) if descriptors.is_file() else 0
+    store.flush(np.stack([T_map_kf[k] for k in range(len(store))]), rows)
 
 
 class OdometryStream:
@@ -100,9 +119,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         write_kitti_poses(out_dir / "poses_kitti.txt", poses)
         write_tum(out_dir / "poses_tum.txt", stamps, poses)
         write_kitti_poses(out_dir / "odometry_kitti.txt", odom)
-        summary["map_points"] = write_map(
-            out_dir / "map.ply", result.store,
-            {k: anchor @ T for k, T in result.kf_poses.items()}, cfg.map.voxel_size_m)
+        T_map_kf = {k: anchor @ T for k, T in result.kf_poses.items()}
+        summary["map_points"] = write_map(out_dir / "map.ply", result.store, T_map_kf,
+                                          cfg.map.voxel_size_m)
+        write_map_manifest(result.store, T_map_kf, cfg)
         summary["path_length_m"] = path_length_m(poses)
         if ground_truth is not None:
             gt = ground_truth[np.asarray(result.indices)]
@@ -113,6 +133,8 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
                 summary["odometry_ate_rmse_m"] = metrics.ate(odom, inverse(gt[0]) @ gt).rmse_m
     if cfg.loop.enabled:
         summary.update(write_loops(out_dir, result))
+    if result.adaptive:
+        summary["auto_settings"] = result.adaptive  # the config's "auto" values, as fixed
     summary["wall_s"] = wall_s
     summary["fps"] = n / wall_s if wall_s > 0 else 0.0
     summary["odometry_ms_per_frame"] = 1e3 * result.seconds["odometry"] / max(n, 1)
@@ -123,8 +145,43 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary["loop_wait_ms_per_frame"] = 1e3 * result.seconds["loop_wait"] / max(n, 1)
     if result.loop_update_s:
         summary["backend_ms_per_loop_max"] = 1e3 * max(s for _, s in result.loop_update_s)
+    if "backend" in result.seconds:  # live (window) updates + final solve, and their share
+        summary["backend_s"] = result.seconds["backend"]
+        summary["backend_final_s"] = result.seconds["backend_final"]
+        summary["backend_share_pct"] = 100.0 * result.seconds["backend"] / max(wall_s, 1e-9)
+        if result.backend_init:
+            summary["backend_final_init"] = result.backend_init
     summary["peak_rss_mb"] = peak_rss_mb()
     summary["skipped_empty_scans"] = result.skipped_empty
     summary.update(extra or {})
+    write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+LOCALIZE_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "status.csv", "summary.json")
+
+
+def write_localization(out_dir: Path, frames: list, summary: dict) -> dict:
+    """The outputs of `localize` (LOCALIZE_OUTPUTS): poses in the map frame and status.csv, one
+    line per input frame, and the summary (returned, with the frame counts added)."""
+    from lidar_slam.localize import Status
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    poses = np.stack([f.T_map_scan for f in frames]) if frames else np.zeros((0, 4, 4))
+    stamps = np.array([f.stamp_s for f in frames])
+    write_kitti_poses(out_dir / "poses_kitti.txt", poses)
+    write_tum(out_dir / "poses_tum.txt", stamps, poses)
+    with atomic_path(out_dir / "status.csv") as tmp, open(tmp, "w", newline="") as fh:
+        rows = csv.writer(fh)
+        rows.writerow(["frame", "stamp_s", "status", "fitness"])
+        rows.writerows([f.index, f"{f.stamp_s:.6f}", f.status.value, f"{f.fitness:.4f}"]
+                       for f in frames)
+    counts = {s: sum(f.status == s for f in frames) for s in Status}
+    first = next((f.index for f in frames if f.status != Status.LOST), None)
+    summary = {"frames": len(frames),
+               "frames_localized": counts[Status.LOCALIZED] + counts[Status.TRACKING],
+               "frames_tracking": counts[Status.TRACKING],
+               "frames_relocalized": counts[Status.LOCALIZED],
+               "frames_lost": counts[Status.LOST], "first_localized_frame": first, **summary}
     write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

@@ -1,6 +1,6 @@
 """The SLAM pipeline in flow order:
 reader -> deskew -> odometry -> keyframe? -> (loop worker: scan-context query -> ICP verify)
--> back-end (incremental pose graph; full solve at the end) -> map / metrics.
+-> back-end (pose graph, bounded-window updates; full solve at the end) -> map / metrics.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
 from lidar_slam.geometry import inverse, transform_points
 from lidar_slam.keyframes import KeyframeSelector, KeyframeStore
+from lidar_slam.loop import adapt
 from lidar_slam.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.types import Scan
 
@@ -38,6 +39,10 @@ class RunResult:
     graph: object | None = None  # the keyframe PoseGraph when loops are on (for graph.g2o)
     seconds: dict[str, float] = field(default_factory=lambda: {"odometry": 0.0, "loops": 0.0})
     loop_update_s: list = field(default_factory=list)  # (keyframe, s) of each loop's update
+    adaptive: dict = field(default_factory=dict)  # the config's "auto" settings as fixed
+    # (match kf, query kf) -> "inlier" / "rejected": what the final solve made of each loop
+    loop_backend: dict = field(default_factory=dict)
+    backend_init: str = ""  # the start the final solve kept (live / chordal)
 
     def final_poses(self) -> np.ndarray:
         """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""
@@ -56,7 +61,7 @@ class Pipeline:
         self.cfg = cfg
         self.odometry = Odometry(cfg)
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
-        self.keyframes = KeyframeSelector(cfg.keyframes)
+        self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
         # the run folder's store (lidar_slam.checkpoint cuts it back to the checkpoint).
         self.result = RunResult(KeyframeStore(None if run_dir is None
@@ -64,16 +69,30 @@ class Pipeline:
         self.backend = self.loops = None
         if cfg.loop.enabled:
             from lidar_slam.backend.slam_backend import Backend
-            from lidar_slam.loop.worker import LoopWorker
 
             self.backend = Backend(cfg.backend)
-            self.loops = LoopWorker(cfg, self.result.store, cfg.loop.worker)
             self.result.graph = self.backend.graph
         self.viz = viz
         self.loops_applied_upto = -1  # keyframes whose loop results are in the graph
+        self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
+
+    def start(self, adaptive: dict[str, float]) -> None:
+        """Fix the config's "auto" settings (lidar_slam.loop.adapt, from the first scan) and
+        start the stages that use them: keyframe selection and the loop worker."""
+        self.adaptive = self.result.adaptive = adaptive
+        self.cfg = adapt.apply(self.cfg, adaptive)
+        if adaptive:
+            log.info("loop settings: %s", adapt.describe(adaptive))
+        self.keyframes = KeyframeSelector(self.cfg.keyframes)
+        if self.cfg.loop.enabled:
+            from lidar_slam.loop.worker import LoopWorker
+
+            self.loops = LoopWorker(self.cfg, self.result.store, self.cfg.loop.worker)
 
     def process(self, scan: Scan) -> None:
         """Run one scan through every stage."""
+        if self.adaptive is None:
+            self.start(adapt.auto_values(self.cfg, scan.points))
         r, t0 = self.result, time.perf_counter()
         deskewed = self.deskew(scan, self.odometry.last_delta)
         odom = self.odometry.step(deskewed)
@@ -105,7 +124,8 @@ class Pipeline:
             pts = transform_points(inverse(odom.T_ref_stamp), pts)
         else:
             pts, inten = pts[:0], None
-        kf = self.result.store.add(deskewed.scan.index, odom.T_world_scan, pts, inten)
+        kf = self.result.store.add(deskewed.scan.index, odom.T_world_scan, pts, inten,
+                                   deskewed.scan.stamp_s)
         if self.backend is not None:
             t0 = time.perf_counter()
             self.backend.add_keyframe(kf.id, kf.T_world_kf_odom)
@@ -123,7 +143,7 @@ class Pipeline:
         self.backend.update(force=False)
 
     def current_kf_poses(self) -> dict[int, np.ndarray]:
-        """Best current T_world_kf of every keyframe (incremental estimate, or odometry)."""
+        """Best current T_world_kf of every keyframe (live estimate, or odometry)."""
         if self.backend is not None:
             return self.backend.poses()
         table = self.result.store.table()
@@ -132,6 +152,8 @@ class Pipeline:
     def finish(self) -> RunResult:
         """Wait for the loop worker, solve the full graph, and return the run's result."""
         r = self.result
+        if self.adaptive is None:  # no scan at all
+            self.start(adapt.auto_values(self.cfg, None))
         if self.backend is not None:
             t0 = time.perf_counter()
             try:
@@ -142,6 +164,9 @@ class Pipeline:
                 self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
             r.kf_poses = self.backend.finish()
             r.loop_update_s = self.backend.loop_update_s
+            r.loop_backend, r.backend_init = self.backend.loop_status, self.backend.final_init
+            r.seconds["backend"] = sum(self.backend.seconds.values())
+            r.seconds["backend_final"] = self.backend.seconds["final"]
             r.seconds["loop_worker"] = self.loops.busy_s
             r.seconds["loop_wait"] = self.loops.wait_s
             r.seconds["loops"] += time.perf_counter() - t0

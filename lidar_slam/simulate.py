@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +34,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.geometry import inverse
+from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,
     read_kitti_calib_tr,
@@ -377,6 +379,15 @@ class World:
         return {"t_hit": ans["t_hit"].numpy(), "class": cls,
                 "prim": ans["primitive_ids"].numpy(), "normal": ans["primitive_normals"].numpy()}
 
+    def closest(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (m) from each point (N, 3), world frame, to the nearest surface, and that
+        surface's class (index into CLASSES)."""
+        ans = self.scene.compute_closest_points(
+            o3d.core.Tensor((np.asarray(points_world) - self.origin).astype(np.float32)))
+        nearest = ans["points"].numpy().astype(np.float64) + self.origin
+        cls = self.class_of_geometry[ans["geometry_ids"].numpy().astype(np.int64)]
+        return np.linalg.norm(nearest - points_world, axis=1), cls
+
 
 class _Builder:
     """Lines the road on both sides with facades, parked cars, poles, trees, bushes and clutter."""
@@ -650,12 +661,13 @@ def write_calib(path: Path, Tr_cam_lidar: np.ndarray) -> None:
     """calib.txt with P0..P3 placeholders (KITTI cam0 intrinsics) and the Tr line."""
     p = "7.188560e+02 0.0 6.071928e+02 0.0 0.0 7.188560e+02 1.852157e+02 0.0 0.0 0.0 1.0 0.0"
     tr = " ".join(f"{v:.12e}" for v in Tr_cam_lidar[:3, :4].ravel())
-    path.write_text("".join(f"P{i}: {p}\n" for i in range(4)) + f"Tr: {tr}\n")
+    write_text_atomic(path, "".join(f"P{i}: {p}\n" for i in range(4)) + f"Tr: {tr}\n")
 
 
 def _write_readme(out: Path, summary: SimSummary) -> None:
     s = summary.sensor
-    out.joinpath("README.txt").write_text(
+    write_text_atomic(
+        out / "README.txt",
         f"Simulated by lidar_slam.simulate (sensor {s.name}: {len(s.elevations_deg)} beams, "
         f"{s.n_azimuth} azimuth steps, {s.rate_hz:g} Hz, max range {s.max_range_m:g} m, "
         f"range noise {s.range_noise_m * 100:g} cm), seed {summary.seed}, "
@@ -669,14 +681,29 @@ def _write_readme(out: Path, summary: SimSummary) -> None:
         "  fitted terrain), not the input trajectory.\n")
 
 
+def sequence_world(poses_world_lidar: np.ndarray, start: int, stop: int,
+                   sensor: str | SensorModel = "hdl64", seed: int = 0,
+                   params: WorldParams | None = None) -> World:
+    """The world simulate_sequence builds for scans start..stop-1 of poses (K, 4, 4): it spans
+    that stretch plus params.extend_m of the input path on either side."""
+    params = params or WorldParams()
+    xy = np.asarray(poses_world_lidar)[:, :2, 3]
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
+    i0 = int(np.searchsorted(arc, arc[start] - params.extend_m, side="left"))
+    i1 = int(np.searchsorted(arc, arc[stop - 1] + params.extend_m, side="right"))
+    return build_world(poses_world_lidar[i0:i1], sensor, seed, params)
+
+
 def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_dir: str | Path,
                       sensor: str | SensorModel = "hdl64", seed: int = 0, start: int = 0,
                       n_scans: int | None = None, Tr_cam_lidar: np.ndarray | None = None,
-                      params: WorldParams | None = None) -> SimSummary:
+                      params: WorldParams | None = None,
+                      on_scan: Callable[[int], None] | None = None) -> SimSummary:
     """Simulate scans start..start+n_scans of a trajectory into a KITTI-layout folder out_dir.
 
     poses_world_lidar (K, 4, 4) with stamps_s (K,) in seconds. The world is built along that
-    stretch only; the same seed gives the same bytes.
+    stretch only; the same seed gives the same bytes. Every file is written whole or not at all
+    (temporary file + rename); on_scan(k) is called after scan k is written (progress).
     """
     sensor = get_sensor(sensor)
     poses_world_lidar = np.asarray(poses_world_lidar, dtype=float)
@@ -688,12 +715,7 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
     Tr = np.eye(4) if Tr_cam_lidar is None else np.asarray(Tr_cam_lidar, dtype=float)
     params = params or WorldParams()
     t0 = time.perf_counter()
-    # The world spans the simulated stretch plus extend_m of the input path on either side.
-    xy = poses_world_lidar[:, :2, 3]
-    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
-    i0 = int(np.searchsorted(arc, arc[start] - params.extend_m, side="left"))
-    i1 = int(np.searchsorted(arc, arc[stop - 1] + params.extend_m, side="right"))
-    world = build_world(poses_world_lidar[i0:i1], sensor, seed, params)
+    world = sequence_world(poses_world_lidar, start, stop, sensor, seed, params)
     world_s = time.perf_counter() - t0
     poses = place_on_terrain(poses_world_lidar[start:stop], world.terrain, sensor.mount_height_m)
     stamps = stamps_s[start:stop]
@@ -706,16 +728,22 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
     for k in range(stop - start):
         rng = np.random.default_rng([seed, 1, start + k])
         scan = simulate_scan(world, sensor, interp, float(stamps[k]), rng)
-        np.c_[scan.points, scan.intensity].astype(np.float32).tofile(
-            out / "velodyne" / f"{k:06d}.bin")
-        scan.times_s.astype(np.float32).tofile(out / "velodyne_times" / f"{k:06d}.bin")
+        # Times first: a scan file never exists without its times (a killed simulate leaves
+        # scans that a run reads correctly, never a half-written one).
+        with atomic_path(out / "velodyne_times" / f"{k:06d}.bin", fsync=False) as tmp:
+            scan.times_s.astype(np.float32).tofile(tmp)
+        with atomic_path(out / "velodyne" / f"{k:06d}.bin", fsync=False) as tmp:
+            np.c_[scan.points, scan.intensity].astype(np.float32).tofile(tmp)
         n_points += len(scan.points)
+        if on_scan is not None:
+            on_scan(k)
         if k % 100 == 0:
             log.info("scan %d/%d: %d points", k, stop - start, len(scan.points))
     per_scan = (time.perf_counter() - t1) / (stop - start)
     T_world_seq = poses[0].copy()
     write_kitti_poses(out / "poses.txt", Tr @ (inverse(T_world_seq) @ poses) @ inverse(Tr))
-    np.savetxt(out / "times.txt", stamps, fmt="%.6f")
+    with atomic_path(out / "times.txt") as tmp:
+        np.savetxt(tmp, stamps, fmt="%.6f")
     write_calib(out / "calib.txt", Tr)
     summary = SimSummary(out, sensor, seed, stop - start, stamps, poses, T_world_seq, Tr,
                          n_points / (stop - start), per_scan, world_s, world.n_triangles,

@@ -7,6 +7,7 @@ scan on the `frame` (input index) and `stamp` (seconds) timelines.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,11 @@ from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import transform_points
 
 SCAN_VOXEL_M = 0.3
+log = logging.getLogger(__name__)
+
+
+def _first_line(exc: Exception) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 class RerunViz:
@@ -31,7 +37,11 @@ class RerunViz:
             except (OSError, RuntimeError) as exc:  # rerun reports an unwritable path this way
                 raise InputError(rrd_path, f"cannot write the recording ({exc})") from exc
         if spawn:
-            self.rec.spawn()
+            try:
+                self.rec.spawn()
+            except (RuntimeError, OSError) as exc:  # no viewer binary, or it cannot start
+                log.warning("--viz: the rerun viewer did not start (%s); the run goes on",
+                            _first_line(exc))
         self._n_loops = 0
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
@@ -80,5 +90,9 @@ class RerunViz:
             self.rec.log("world/optimised_map", rr.Points3D(cloud, radii=0.04), static=True)
             self._log_loops([row for row in result.loops if row.accepted],
                             {k: anchor @ T for k, T in result.kf_poses.items()})
-        self.rec.flush()
-        self.rec.disconnect()
+        try:
+            self.rec.flush()
+            self.rec.disconnect()
+        except RuntimeError as exc:  # the viewer went away or never came up (no display)
+            log.warning("--viz: the rerun viewer could not be reached (%s); nothing shown",
+                        _first_line(exc))

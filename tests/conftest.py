@@ -3,7 +3,11 @@ LIDAR_SLAM_REQUIRE_SHARED=1 (set by .ci/run), where its absence is a failure."""
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -46,3 +50,48 @@ def posegraphs() -> Path:
 @pytest.fixture
 def kitti_gt() -> Path:
     return shared_path("kitti_gt")
+
+
+@dataclass(frozen=True)
+class SimMap:
+    """A small simulated drive and a finished run on part of it, shared by the map tests:
+    `seq` holds scans 0..SIM_SCANS-1 of simulated KITTI 07 (seed 0), `run` the map made by
+    `lidar-slam run seq --n-scans MAP_SCANS` (default config)."""
+
+    seq: Path
+    run: Path
+    run_summary: dict
+    truth: object  # lidar_slam.simulate.SimSummary
+
+
+SIM_SCANS = 180
+MAP_SCANS = 180
+
+
+@pytest.fixture(scope="session")
+def sim_map(tmp_path_factory) -> SimMap:
+    """Simulate 07 frames 0..179 and map them once per test session."""
+    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+
+    kt = load_kitti_truth(shared_path("kitti_gt"), 7)
+    root = tmp_path_factory.mktemp("sim_map")
+    truth = simulate_sequence(kt.poses_world_lidar, kt.stamps_s, root / "seq", start=0,
+                              n_scans=SIM_SCANS, Tr_cam_lidar=kt.Tr_cam_lidar)
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(root / "seq"),
+                           "--out", str(root / "run"), "--n-scans", str(MAP_SCANS)],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((root / "run" / "summary.json").read_text())
+    return SimMap(root / "seq", root / "run", summary, truth)
+
+
+def require_ray() -> None:
+    """Skip a test that needs Ray (the cluster extra) where it is not installed, unless
+    LIDAR_SLAM_REQUIRE_RAY=1 (set by .ci/run, whose install includes the extra): then fail."""
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        msg = "Ray is not installed (pip install -e '.[cluster]')"
+        if os.environ.get("LIDAR_SLAM_REQUIRE_RAY") == "1":
+            pytest.fail(msg)
+        pytest.skip(msg)

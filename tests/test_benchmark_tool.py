@@ -60,6 +60,13 @@ def test_benchmark_table_on_kitti_slice(kitti16, tmp_path):
     assert rows["kiss-icp"]["cells"]["loops accepted / correct"] == "- (odometry only)"
     # Same scans, same kiss-icp underneath: the two odometries agree closely on 4 frames.
     assert abs(rows["lidar-slam"]["ate_rmse_m"] - rows["kiss-icp"]["ate_rmse_m"]) < 0.05
+    # lidar-slam is scored by `lidar-slam batch`'s results code, and gets its table too.
+    with (out / "lidar-slam" / "results.csv").open(newline="") as fh:
+        ours = list(csv.DictReader(fh))
+    assert [r["sequence"] for r in ours] == ["kitti00_first16", "TOTAL"]
+    assert ours[0]["status"] == "ok" and ours[0]["frames"] == "4" and ours[0]["t_err_pct"] == ""
+    assert float(ours[0]["ate_m"]) == pytest.approx(rows["lidar-slam"]["ate_rmse_m"], abs=1e-6)
+    assert (out / "kitti00_first16" / "lidar-slam" / "eval" / "trajectory_top.png").is_file()
 
 
 def _gt_slice(kitti16, n):

@@ -19,7 +19,7 @@ from lidar_slam.geometry import inverse, make_pose, yaw_matrix
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import read_kitti_poses
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "check_reference.py"
+TOOL = Path(__file__).resolve().parents[1] / "tools" / "forensics" / "check_reference.py"
 
 
 def load_tool():

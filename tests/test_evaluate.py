@@ -159,3 +159,81 @@ def test_evaluate_bad_inputs_raise_input_error(tmp_path):
     write_kitti_poses(tmp_path / "nan.txt", nan)
     with pytest.raises(InputError, match="NaN"):
         run_eval(tmp_path / "nan.txt", tmp_path / "gt.txt")
+
+
+def test_evaluate_start_offsets_the_ground_truth_and_the_loop_frames(tmp_path):
+    """A run made with --start 40 --n-scans 200: its line 0 is ground-truth line 40, and its
+    loops.csv numbers frames from the input's first scan."""
+    gt = straight_drive(300)
+    write_kitti_poses(tmp_path / "gt.txt", gt)
+    write_kitti_poses(tmp_path / "est.txt", gt[40:240])
+    with pytest.raises(InputError, match="--start"):
+        run_eval(tmp_path / "est.txt", tmp_path / "gt.txt")
+    m = run_eval(tmp_path / "est.txt", tmp_path / "gt.txt", start=40)
+    assert m["ate_rmse_m"] < 1e-6 and m["n_frames"] == 200
+    assert "lines 40..239" in m["pairing"]
+    (tmp_path / "loops.csv").write_text("query_frame,match_frame,accepted\n230,45,1\n")
+    m = run_eval(tmp_path / "est.txt", tmp_path / "gt.txt", start=40,
+                 loops_csv=tmp_path / "loops.csv")
+    assert (m["loops_accepted"], m["loops_correct"], m["loops_unscored"]) == (1, 1, 0)
+    with pytest.raises(InputError, match="need 350 lines"):
+        run_eval(tmp_path / "est.txt", tmp_path / "gt.txt", start=150)
+
+
+def test_evaluate_mixes_kitti_and_tum_files(tmp_path):
+    """Each file's format is told by its columns: a TUM estimate against KITTI ground truth with
+    its times file (paired by stamp), and a KITTI estimate against TUM ground truth (by line)."""
+    gt = straight_drive(300)
+    stamps = 50.0 + 0.1 * np.arange(len(gt))
+    est = gt.copy()
+    est[:, :3, 3] *= 1.01
+    write_kitti_poses(tmp_path / "gt_kitti.txt", gt)
+    np.savetxt(tmp_path / "times.txt", stamps)
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    write_kitti_poses(tmp_path / "est_kitti.txt", est)
+    keep = np.arange(0, len(gt), 2)
+    write_tum(tmp_path / "est.tum", stamps[keep], est[keep])
+    ref = run_eval(tmp_path / "est_kitti.txt", tmp_path / "gt_kitti.txt")
+    by_line = run_eval(tmp_path / "est_kitti.txt", tmp_path / "gt.tum")
+    assert by_line["pairing"].startswith("line by line")
+    for key in KEYS:
+        assert by_line[key] == pytest.approx(ref[key], rel=1e-6)
+    by_stamp = run_eval(tmp_path / "est.tum", tmp_path / "gt_kitti.txt",
+                        gt_times=tmp_path / "times.txt")
+    assert by_stamp["pairing"].startswith("by stamp") and by_stamp["n_frames"] == len(keep)
+    assert by_stamp["ate_rmse_m"] == pytest.approx(
+        run_eval_kitti(tmp_path, est[keep], gt[keep])["ate_rmse_m"], rel=1e-6)
+    (tmp_path / "six.txt").write_text("1 2 3 4 5 6\n")
+    with pytest.raises(InputError, match="neither KITTI"):
+        run_eval(tmp_path / "six.txt", tmp_path / "gt_kitti.txt")
+
+
+def test_evaluate_revisit_gap_scores_a_short_loop(tmp_path):
+    """A 70-frame circuit closed at frames 63..69 (as sample_scans): no revisit with the default
+    100-frame gap, one found with --revisit-gap 30."""
+    n = 70
+    a = 2 * np.pi * np.arange(n) / 63.0
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, 0, 3], gt[:, 1, 3] = 15 * np.cos(a), 15 * np.sin(a)
+    write_kitti_poses(tmp_path / "gt.txt", gt)
+    write_kitti_poses(tmp_path / "est.txt", gt)
+    (tmp_path / "loops.csv").write_text("query_frame,match_frame,accepted\n65,2,1\n")
+    kwargs = {"loops_csv": tmp_path / "loops.csv"}
+    default = run_eval(tmp_path / "est.txt", tmp_path / "gt.txt", **kwargs)
+    assert default["revisit_events"] == 0 and default["loop_recall_events"] is None
+    short = run_eval(tmp_path / "est.txt", tmp_path / "gt.txt", revisit_gap=30, **kwargs)
+    assert (short["revisit_events"], short["revisit_events_found"]) == (1, 1)
+    assert short["revisit_gap_frames"] == 30
+
+
+def test_evaluate_plots_drift_against_segment_length(tmp_path):
+    gt = straight_drive(400)
+    est = gt.copy()
+    est[:, :3, 3] *= 1.01
+    write_kitti_poses(tmp_path / "e.txt", est)
+    write_kitti_poses(tmp_path / "g.txt", gt)
+    m = run_eval(tmp_path / "e.txt", tmp_path / "g.txt", out_dir=tmp_path / "out")
+    assert [b["length_m"] for b in m["drift_by_length"]][:2] == [100.0, 200.0]
+    png = tmp_path / "out" / "drift_vs_length.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list((tmp_path / "out").glob(".*.tmp"))  # written via a temporary file

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lidar_slam import pipeline
 from lidar_slam.config import load_config
@@ -89,3 +90,23 @@ def test_first_frame_refers_to_its_stamp_when_moving():
     G = src.ground_truth[20:30]
     err = inverse(inverse(G[0]) @ G[1]) @ (inverse(P[0]) @ P[1])
     assert np.linalg.norm(err[:3, 3]) < 0.2
+
+
+@pytest.mark.shared_data
+def test_default_config_closes_the_indoor_ouster_loop(ouster_loop):
+    """With no overlay, the loop settings follow the data (lidar_slam.loop.adapt): the hand-held
+    indoor loop (files 168-176 back to 106-115) is closed, and no accepted loop is grossly off
+    the reference relative pose (1 m / 5 deg: the reference itself is ~7 cm off at this loop)."""
+    from lidar_slam.geometry import relative, rotation_angle_deg
+    from lidar_slam.io.trajectory import read_kitti_poses
+
+    cfg = load_config(None)
+    res = pipeline.run(open_source(ouster_loop).scans(), cfg)
+    res.store.close()
+    assert res.adaptive["max_radius_m"] <= 40.0 and res.adaptive["distance_m"] <= 1.0
+    ref = read_kitti_poses(ouster_loop / "poses.txt")
+    accepted = [r for r in res.loops if r.accepted]
+    assert any(68 <= r.query_frame <= 76 and 6 <= r.match_frame <= 15 for r in accepted)
+    for r in accepted:
+        d = inverse(relative(ref[r.match_frame], ref[r.query_frame])) @ r.T_match_query
+        assert np.linalg.norm(d[:3, 3]) < 1.0 and rotation_angle_deg(d) < 5.0, r

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from lidar_slam.errors import InputError
-from lidar_slam.io.pointcloud import read_cloud, times_to_relative_seconds
+from lidar_slam.io.point_times import relative_seconds
+from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
 from lidar_slam.mapping import write_ply
 from lidar_slam.o3d import o3d
@@ -48,17 +49,73 @@ def test_time_field_is_picked_up_and_converted_to_seconds(tmp_path):
                                       (np.array([5.0, 5.05, 5.1]), 0.1),
                                       (np.array([0, 1e8]), 0.1)])
 def test_time_units_are_inferred(raw, span):
-    assert abs(times_to_relative_seconds(raw).max() - span) < 1e-9
+    assert abs(relative_seconds(raw).max() - span) < 1e-9
 
 
 def test_relative_times_keep_their_zero_and_absolute_ones_start_at_zero():
     """Times already relative to the stamp (a scan stamped at the sweep's end) are kept; UNIX
     times become relative to the sweep's first point."""
-    np.testing.assert_allclose(times_to_relative_seconds(np.array([-0.1, -0.05, 0.0])),
+    np.testing.assert_allclose(relative_seconds(np.array([-0.1, -0.05, 0.0])),
                                [-0.1, -0.05, 0.0])
-    np.testing.assert_allclose(times_to_relative_seconds(np.array([-100_000, 0])), [-0.1, 0.0])
+    np.testing.assert_allclose(relative_seconds(np.array([-100_000, 0])), [-0.1, 0.0])
     unix_ns = np.array([1_630_577_758_000_000_000, 1_630_577_758_100_000_000], dtype=np.int64)
-    np.testing.assert_allclose(times_to_relative_seconds(unix_ns), [0.0, 0.1], atol=1e-6)
+    np.testing.assert_allclose(relative_seconds(unix_ns), [0.0, 0.1], atol=1e-6)
+
+
+def _write_pcd_with_time(path, pts, name, ptype, values):
+    """Binary PCD with float x y z and one time field of PCD type ptype (U/I/F) and its size."""
+    size = np.dtype(values.dtype).itemsize
+    head = (f"VERSION 0.7\nFIELDS x y z {name}\nSIZE 4 4 4 {size}\nTYPE F F F {ptype}\n"
+            f"COUNT 1 1 1 1\nWIDTH {len(pts)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            f"POINTS {len(pts)}\nDATA binary\n")
+    rec = np.zeros(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                    ("t", values.dtype.newbyteorder("<"))])
+    rec["x"], rec["y"], rec["z"], rec["t"] = pts[:, 0], pts[:, 1], pts[:, 2], values
+    path.write_bytes(head.encode() + rec.tobytes())
+
+
+SWEEP_S = np.linspace(0.0, 0.15, 40)  # a 0.15 s sweep (span above 1e5 us: misread as ns before)
+
+
+@pytest.mark.parametrize("name,ptype,values,stamp_ns", [
+    ("t", "U", np.round(SWEEP_S * 1e6).astype(np.uint32), None),         # integer microseconds
+    ("t", "U", np.round(SWEEP_S * 1e9).astype(np.uint32), None),         # integer nanoseconds
+    ("offset_time", "U", np.round(SWEEP_S * 1e9).astype(np.uint32), None),  # Livox
+    ("time", "F", SWEEP_S.astype(np.float32), None),                     # float seconds
+    ("timestamp", "U", (1_588_075_038_629_915_872                         # absolute UNIX ns
+                        + np.round(SWEEP_S * 1e9)).astype(np.uint64), 1_588_075_038_629_915_872),
+])
+def test_pcd_time_fields_read_as_the_rosbag_reader_reads_them(tmp_path, name, ptype, values,
+                                                              stamp_ns):
+    """One per-point-time conversion for every reader: a PCD file and a PointCloud2 message with
+    the same field give the same seconds relative to the scan stamp."""
+    from test_rosbag import STAMP_NS, _cloud_msg, _rec
+
+    from lidar_slam.io.rosbag import decode_pointcloud2
+
+    pts = np.random.default_rng(3).uniform(-20, 20, (len(values), 3))
+    _write_pcd_with_time(tmp_path / "s.pcd", pts, name, ptype, values)
+    from_pcd = read_cloud(tmp_path / "s.pcd", stamp_ns)
+    in_bag = values.astype(np.float64) if values.dtype == np.uint64 else values  # no UINT64
+    rec = _rec(pts, step=24, extra={name: (in_bag.dtype.str, 16, in_bag)})
+    from_bag = decode_pointcloud2(_cloud_msg(rec, stamp_ns=stamp_ns or STAMP_NS))
+    np.testing.assert_allclose(from_pcd.times, SWEEP_S, atol=1e-6)
+    # (float64 nanoseconds since 1970 are exact to ~0.2 us only)
+    np.testing.assert_allclose(from_pcd.times, from_bag.point_times,
+                               atol=1e-9 if in_bag is values else 1e-6)
+
+
+def test_folder_gives_absolute_pcd_times_relative_to_the_stamps_in_times_txt(tmp_path):
+    """A sweep stamped at its middle: absolute integer-nanosecond point times minus the stamp."""
+    stamp_ns = 1_630_577_758_000_000_000
+    pts = np.random.default_rng(4).uniform(-20, 20, (len(SWEEP_S), 3))
+    for i in range(2):
+        t0 = stamp_ns + i * 100_000_000
+        ns = (t0 - 75_000_000 + np.round(SWEEP_S * 1e9)).astype(np.uint64)
+        _write_pcd_with_time(tmp_path / f"{i}.pcd", pts, "t", "U", ns)
+    (tmp_path / "times.txt").write_text(f"{stamp_ns * 1e-9:.9f}\n{stamp_ns * 1e-9 + 0.1:.9f}\n")
+    for scan in open_source(tmp_path).scans():
+        np.testing.assert_allclose(scan.point_times, SWEEP_S - 0.075, atol=1e-6)
 
 
 def test_folder_is_sorted_naturally_and_nan_points_dropped(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import struct
 from pathlib import Path
@@ -374,4 +375,6 @@ def test_rosbag_containers_give_identical_runs(rosbags_dir, tmp_path):
                                "--n-scans", "1"], capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr
         outs.append((out / "map.ply").read_bytes())
+        summary = json.loads((out / "summary.json").read_text())  # the topic picked, reported
+        assert (summary["input_kind"], summary["topic"]) == ("rosbag", TOPIC)
     assert all(o == outs[0] for o in outs)

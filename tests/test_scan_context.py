@@ -48,13 +48,13 @@ def test_column_distance_is_zero_for_itself_and_one_without_common_columns():
 def test_rotated_cloud_matches_itself_with_the_yaw_of_T_match_query(ouster_loop, yaw_deg):
     """The query is the match cloud seen from a frame turned by yaw: T_match_query = Rz(yaw), so
     p_query = inv(Rz(yaw)) p_match. The index must report that yaw (sign included)."""
-    cfg = ScanContextConfig(**INDOOR, exclude_recent=1)
+    cfg = ScanContextConfig(**INDOOR, exclude_recent_m=1.0)
     match = keyframe_cloud(ouster_loop, 110)
     T_match_query = yaw_matrix(np.radians(yaw_deg))
     query = transform_points(inverse(T_match_query), match)
     index = ScanContextIndex(cfg)
-    index.add(0, match)
-    res = index.query(5, query)
+    index.add(0, match, path_m=0.0)
+    res = index.query(5, query, path_m=5.0)
     assert res.best_match == 0
     sector_deg = 360.0 / cfg.sectors
     # Whole-sector turns give back the same bins; others re-bin points near sector borders.
@@ -84,12 +84,12 @@ def test_ground_levelling_recovers_the_reference_gravity_of_a_tilted_handheld_sc
 def test_last_scans_retrieve_an_early_scan_of_the_same_place(ouster_loop):
     """Files 168-176 revisit 106-115 (2.3-4 m away, heading ~80-100 deg different)."""
     poses = read_kitti_poses(ouster_loop / "poses.txt")
-    cfg = ScanContextConfig(**INDOOR, exclude_recent=20)
+    cfg = ScanContextConfig(**INDOOR, exclude_recent_m=20.0)
     index = ScanContextIndex(cfg)
     for frame in range(100, 141):
-        index.add(frame, keyframe_cloud(ouster_loop, frame))
+        index.add(frame, keyframe_cloud(ouster_loop, frame), path_m=float(frame))
     for frame in range(168, 177):
-        res = index.query(frame, keyframe_cloud(ouster_loop, frame))
+        res = index.query(frame, keyframe_cloud(ouster_loop, frame), path_m=float(frame))
         assert res.candidates, (frame, res.best_distance)
         best = res.candidates[0]
         assert best.score == pytest.approx(res.best_distance)
@@ -101,20 +101,20 @@ def test_last_scans_retrieve_an_early_scan_of_the_same_place(ouster_loop):
 @pytest.mark.shared_data
 def test_recent_keyframes_are_never_candidates_and_grids_on_disk_match_ram(ouster_loop, tmp_path):
     clouds = {f: keyframe_cloud(ouster_loop, f) for f in range(100, 124)}
-    cfg = ScanContextConfig(**INDOOR, exclude_recent=5, threshold=1.0)
+    cfg = ScanContextConfig(**INDOOR, exclude_recent_m=5.0, threshold=1.0)
     disk = ScanContextIndex(cfg, tmp_path / "grids.bin")
     ram = ScanContextIndex(cfg)
     for f, pts in clouds.items():
-        a, b = disk.query(f, pts), ram.query(f, pts)
+        a, b = disk.query(f, pts, float(f)), ram.query(f, pts, float(f))
         assert all(c.match <= f - 5 for c in a.candidates)
         assert [(c.match, c.score) for c in a.candidates] == [(c.match, c.score)
                                                                for c in b.candidates]
         if f < 105:
             assert a.best_match is None and not a.candidates
-        disk.add(f, pts)
-        ram.add(f, pts)
+        disk.add(f, pts, float(f))
+        ram.add(f, pts, float(f))
     with pytest.raises(ValueError):
-        disk.add(110, clouds[110])
+        disk.add(110, clouds[110], 110.0)
     disk.close()
 
 
@@ -128,3 +128,17 @@ def test_descriptor_bins_hold_the_highest_point_above_ground():
     assert grid[2, 4] == 0.0  # below the ground: clipped at 0
     assert grid[1, 0] == pytest.approx(3.0)  # azimuth just above -pi -> sector 0, r = 3 m
     assert np.count_nonzero(grid) == 2
+
+
+def test_recent_means_little_path_and_little_time():
+    """A keyframe is skipped while the sensor is within exclude_recent_m of path of it and
+    exclude_recent_s of time: standing in a room for a minute makes old keyframes candidates."""
+    cfg = ScanContextConfig(**INDOOR, exclude_recent_m=10.0, exclude_recent_s=30.0)
+    index = ScanContextIndex(cfg)
+    rng = np.random.default_rng(0)
+    for k in range(5):  # 1 m and 1 s apart
+        index.add(k, rng.uniform(-10, 10, (500, 3)), path_m=float(k), stamp_s=float(k))
+    assert index.n_eligible(path_m=5.0, stamp_s=5.0) == 0
+    assert index.n_eligible(path_m=12.5, stamp_s=5.0) == 3  # path 0, 1, 2 are 10 m back
+    assert index.n_eligible(path_m=5.0, stamp_s=32.0) == 3  # stamps 0, 1, 2 are 30 s back
+    assert index.n_eligible(path_m=5.0) == 0  # no stamp: path alone

@@ -32,7 +32,7 @@ from lidar_slam.types import LoopCandidate
 
 TRUE_PAIRS = [(175, 108), (172, 109), (168, 113), (176, 114)]  # 2.2-4.1 m apart
 # Far apart in the reference, or places where ICP slides to a wrong pose 6-7 m off along the
-# hall with a plausible fitness (found by tools/loop_sweep.py).
+# hall with a plausible fitness (found by tools/loop_tuning.py sweep).
 WRONG_PAIRS = [(150, 100), (130, 100), (162, 124), (163, 100), (162, 100), (138, 111),
                (157, 129)]
 

@@ -11,6 +11,10 @@ over the repeats (interleaved, so every system sees the same machine load), peak
 repeats. Accuracy comes from lidar_slam.evaluate.run_eval and lidar_slam.metrics on the outputs of
 the last repeat, against the sequence's ground truth (reference poses for the Ouster set).
 
+lidar-slam's rows are scored by the code of `lidar-slam batch` (lidar_slam.results.run_row: the
+same t_err, r_err, ATE and counts as a batch's results table), and its runs also get that table,
+DIR/lidar-slam/results.{md,json,csv}, so a benchmark and a batch can be compared row by row.
+
 Writes DIR/benchmark.md and DIR/benchmark.json (the table), and per (sequence, system) the run
 outputs, logs and evaluation (metrics.json and plots) under DIR/<sequence>/<system>/.
 """
@@ -31,11 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam import evaluate, metrics
+from lidar_slam import evaluate, metrics, results
 from lidar_slam.errors import LidarSlamError
 from lidar_slam.geometry import from_xyz_quat, interpolate, inverse
 from lidar_slam.io.sources import open_source
-from lidar_slam.io.trajectory import write_kitti_poses
+from lidar_slam.io.trajectory import read_kitti_poses, write_kitti_poses
 
 HERE = Path(__file__).resolve().parent
 SYSTEMS = ("lidar-slam", "kiss-icp-pipeline", "kiss-icp", "kiss-slam")
@@ -62,6 +66,7 @@ class Sequence:
     n: int
     gt: np.ndarray | None  # (n, 4, 4) T_first_lidar, or None
     config: Path | None
+    ground_truth: np.ndarray | None = None  # T_world_lidar of every input scan (the source's)
 
 
 @dataclass
@@ -78,6 +83,7 @@ class Row:
     loops_correct: int | None = None
     error: str | None = None
     notes: list[str] = field(default_factory=list)
+    result: results.SequenceResult | None = None  # lidar-slam: its row of the batch table
 
     @property
     def fps(self) -> float | None:
@@ -146,10 +152,10 @@ def command(system: str, seq: Sequence, out: Path) -> list[str]:
     if system == "kiss-icp":
         # --deskew: per-point times go to register_frame when the scans carry them, as
         # kiss-icp's own pipeline does (its deskew is on by default).
-        return [sys.executable, str(HERE / "stock_kiss_icp.py"), str(seq.path),
+        return [sys.executable, str(HERE / "peers" / "stock_kiss_icp.py"), str(seq.path),
                 str(out / "poses_kitti.txt"), "--deskew", *rng]
     if system == "kiss-slam":
-        return [sys.executable, str(HERE / "kiss_slam_peer.py"), str(seq.path),
+        return [sys.executable, str(HERE / "peers" / "kiss_slam_peer.py"), str(seq.path),
                 str(out / "poses_kitti.txt"), "--closures", str(out / "closures.json"), *rng]
     raise ValueError(f"unknown system {system!r}")
 
@@ -185,7 +191,7 @@ def lidar_slam_loops(path: Path, start: int, n: int) -> tuple[np.ndarray, np.nda
 
 
 def kiss_slam_loops(path: Path, start: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """KISS-SLAM closures (from tools/kiss_slam_peer.py) as frame pairs with T_match_query."""
+    """KISS-SLAM closures (from tools/peers/kiss_slam_peer.py) as frame pairs with T_match_query."""
     closures = json.loads(path.read_text())["closures"]
     pairs = np.array([[c["query_frame"], c["match_frame"]] for c in closures],
                      dtype=np.int64).reshape(-1, 2)
@@ -232,8 +238,28 @@ def sweep_end_truth(seq: Sequence) -> np.ndarray | None:
     return out
 
 
+def evaluate_lidar_slam(row: Row, seq: Sequence, out: Path) -> None:
+    """lidar-slam's metrics as `lidar-slam batch` computes them (results.run_row), with the
+    evaluation's metrics.json and plots in out/eval as for the peers."""
+    row.result = results.run_row(seq.name, out, seq.ground_truth)
+    m = row.result.details.get("eval")
+    if m is not None:
+        row.metrics.update(m)
+        if m.get("warning"):
+            row.notes.append(m["warning"])
+        d = out / "eval"
+        d.mkdir(exist_ok=True)
+        (d / "metrics.json").write_text(json.dumps(m, indent=2) + "\n")
+        evaluate.write_plots(d, read_kitti_poses(out / "poses_kitti.txt"), seq.gt)
+    if (out / "loops.csv").is_file():
+        score_loops(row, *lidar_slam_loops(out / "loops.csv", seq.start, seq.n), seq)
+
+
 def evaluate_row(row: Row, seq: Sequence, out: Path, gt_file: Path | None) -> None:
     """Trajectory metrics (evaluate.run_eval) and loop counts of one finished run."""
+    if row.system == "lidar-slam":
+        evaluate_lidar_slam(row, seq, out)
+        return
     poses = out / "poses_kitti.txt"
     if row.system == "kiss-icp-pipeline":  # kiss-icp writes under results/<stamp>/
         found = sorted(out.glob("results/latest/*_poses_kitti.txt"))
@@ -246,9 +272,7 @@ def evaluate_row(row: Row, seq: Sequence, out: Path, gt_file: Path | None) -> No
             return
         if row.metrics.get("warning"):
             row.notes.append(row.metrics["warning"])
-    if row.system == "lidar-slam" and (out / "loops.csv").is_file():
-        score_loops(row, *lidar_slam_loops(out / "loops.csv", seq.start, seq.n), seq)
-    elif row.system == "kiss-slam" and (out / "closures.json").is_file():
+    if row.system == "kiss-slam" and (out / "closures.json").is_file():
         score_loops(row, *kiss_slam_loops(out / "closures.json", seq.start), seq)
 
 
@@ -352,7 +376,8 @@ def load_sequence(path: str, start: int, n_scans: int | None, configs: dict[str,
     if src.ground_truth is not None:
         gt = src.ground_truth[start:start + n]
         gt = inverse(gt[0]) @ gt
-    return Sequence(Path(path).resolve(), src.name, start, n, gt, configs.get(src.name))
+    return Sequence(Path(path).resolve(), src.name, start, n, gt, configs.get(src.name),
+                    src.ground_truth)
 
 
 def warm_page_cache(path: Path) -> tuple[float, float]:
@@ -452,6 +477,14 @@ def main(argv: list[str] | None = None) -> int:
             "n_scans": args.n_scans, "systems": systems,
             "configs": {k: str(v) for k, v in configs.items()}, "fps_vs_kiss_icp": ratios}
     args.out.mkdir(parents=True, exist_ok=True)
+    ours = [r for r in rows if r.system == "lidar-slam"]
+    if ours:  # lidar-slam's runs as one batch results table (the last repeat of each)
+        table = [r.result or results.error_row(r.sequence, r.error or "no result") for r in ours]
+        results.write_results(args.out / "lidar-slam", table, sum(r.wall_s[-1] for r in ours
+                                                                  if r.wall_s),
+                              notes=[f"tools/benchmark.py, {args.repeats} repeat(s); fps: the "
+                                     f"last repeat's own wall time (benchmark.md: whole "
+                                     f"process, median of the repeats)"])
     md = markdown(rows, meta)
     (args.out / "benchmark.md").write_text(md)
     (args.out / "benchmark.json").write_text(json.dumps(as_json(rows, meta), indent=2) + "\n")

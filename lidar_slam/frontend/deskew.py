@@ -16,6 +16,7 @@ sim 07 (tools/compare_deskew.py).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -89,6 +90,17 @@ class DeskewedScan:
         if self.ref_s == 0.0:
             return np.eye(4)
         return interpolate(np.eye(4), T_prev_curr, -self.ref_s / self.period_s)
+
+    def with_motion(self, T_prev_curr: np.ndarray) -> DeskewedScan:
+        """The same scan deskewed along another motion (a better estimate of the same sweep's),
+        to the same reference instant and with the same points."""
+        scan = self.scan
+        if self.ref_s == 0.0:  # not deskewed (no per-point times, or deskew off)
+            return dataclasses.replace(self, T_prev_curr=T_prev_curr)
+        idx = slice(None) if self.selected_idx is None else self.selected_idx
+        points = deskew(scan.points[idx], scan.point_times[idx] - self.ref_s, T_prev_curr,
+                        self.period_s)
+        return dataclasses.replace(self, points=points, T_prev_curr=T_prev_curr)
 
     def cloud(self, voxel_m: float, min_range_m: float, max_range_m: float
               ) -> tuple[np.ndarray, np.ndarray | None]:

@@ -19,6 +19,7 @@ import numpy as np
 
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import matrix_from_quat, to_xyz_quat
+from lidar_slam.io.atomic import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -47,12 +48,14 @@ class G2oEdge:
 
 @dataclass(frozen=True)
 class G2oGraph:
-    """A g2o file: initial poses T_world_node (from VERTEX lines or chained edges) and edges."""
+    """A g2o file: initial poses T_world_node (from VERTEX lines or chained edges) and edges;
+    n_repaired information matrices were not positive definite and lost their cross terms."""
 
     dims: int
     poses: dict[int, np.ndarray]
     edges: list[G2oEdge]
     n_vertex_lines: int
+    n_repaired: int = 0
 
 
 def g2o_to_gtsam_information(info_g2o: np.ndarray) -> np.ndarray:
@@ -192,7 +195,7 @@ def read_g2o(path: str | Path) -> G2oGraph:
         edge_lines.append(lineno)
     if not edges:
         raise InputError(path, "no EDGE_SE2 or EDGE_SE3:QUAT records")
-    _check_information(edges, edge_lines, path)
+    n_repaired = _check_information(edges, edge_lines, path)
     nodes = {e.i for e in edges} | {e.j for e in edges}
     n_vertex_lines = len(poses)
     if poses:
@@ -204,11 +207,12 @@ def read_g2o(path: str | Path) -> G2oGraph:
     else:
         poses = _chain(nodes, edges, path)
     assert dims is not None
-    return G2oGraph(dims, poses, edges, n_vertex_lines)
+    return G2oGraph(dims, poses, edges, n_vertex_lines, n_repaired)
 
 
-def _check_information(edges: list[G2oEdge], edge_lines: list[int], path: Path) -> None:
-    """Keep PD information; make an indefinite one block-diagonal (rotation | translation).
+def _check_information(edges: list[G2oEdge], edge_lines: list[int], path: Path) -> int:
+    """Keep PD information; make an indefinite one block-diagonal (rotation | translation);
+    returns how many were repaired.
 
     Some benchmark files (cubicle.g2o: 5021 of 16869 edges) carry rotation-translation cross terms
     that make the matrix indefinite. SE-Sync only uses the diagonal blocks; gtsam would silently
@@ -218,7 +222,7 @@ def _check_information(edges: list[G2oEdge], edge_lines: list[int], path: Path) 
     infos = np.stack([e.information for e in edges])
     bad = np.flatnonzero(~(np.linalg.eigvalsh(infos)[:, 0] > 0))
     if not len(bad):
-        return
+        return 0
     n = infos.shape[1]
     rot = np.zeros(n, dtype=bool)
     rot[[2] if n == 3 else [0, 1, 2]] = True
@@ -235,6 +239,7 @@ def _check_information(edges: list[G2oEdge], edge_lines: list[int], path: Path) 
         edges[k] = G2oEdge(e.i, e.j, e.T_i_j, info)
     log.warning("%s: %d of %d information matrices are indefinite (first: line %d); dropped their "
                 "rotation-translation cross terms", path, len(bad), len(edges), edge_lines[bad[0]])
+    return len(bad)
 
 
 def _fmt(values) -> str:
@@ -260,4 +265,4 @@ def write_g2o(path: str | Path, graph: G2oGraph) -> None:
             info = gtsam_to_g2o_information(e.information)
             lines.append(f"EDGE_SE3:QUAT {e.i} {e.j} {_fmt(to_xyz_quat(e.T_i_j))} "
                          f"{_fmt(info[iu])}")
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.point_times import relative_seconds
 
 SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
 TIME_FIELDS = ("t", "time", "timestamp", "timestamps", "offset_time")
@@ -23,26 +24,6 @@ class CloudData:
     intensity: np.ndarray | None
 
 
-def times_to_relative_seconds(raw: np.ndarray) -> np.ndarray:
-    """Per-point times in any unit (s, us, ns) to seconds relative to the scan stamp.
-
-    The unit is inferred from the span: a lidar sweep lasts 0.05-0.5 s, so a span above 1e5 is
-    nanoseconds and above 100 is microseconds. Times that already lie within 1 s of zero are
-    taken as relative to the stamp and kept (e.g. [-0.1, 0] for a scan stamped at the sweep's
-    end); absolute times (UNIX epoch) become relative to the sweep's earliest point.
-    """
-    t = np.asarray(raw, dtype=np.float64)
-    if not t.size:
-        return t
-    t0 = float(t.min())
-    rel = t - t0
-    span = float(rel.max())
-    scale = 1e-9 if span > 1e5 else 1e-6 if span > 100.0 else 1.0
-    if abs(t0) * scale <= 1.0 and abs(float(t.max())) * scale <= 1.0:
-        return t * scale
-    return rel * scale
-
-
 def read_bin(path: Path) -> CloudData:
     size = path.stat().st_size
     if size % 16 != 0:
@@ -56,7 +37,7 @@ def _header_says_empty(path: Path) -> bool:
     return ("POINTS 0\n" in head or "POINTS 0\r" in head) or "element vertex 0\n" in head
 
 
-def read_o3d(path: Path) -> CloudData:
+def read_o3d(path: Path, stamp_ns: int | None = None) -> CloudData:
     from lidar_slam.o3d import o3d
 
     try:
@@ -79,7 +60,7 @@ def read_o3d(path: Path) -> CloudData:
     times = intensity = None
     for name in TIME_FIELDS:
         if name in pcd.point:
-            times = times_to_relative_seconds(pcd.point[name].numpy().ravel())
+            times = relative_seconds(pcd.point[name].numpy().ravel(), stamp_ns)
             break
     for name in INTENSITY_FIELDS:
         if name in pcd.point:
@@ -88,7 +69,7 @@ def read_o3d(path: Path) -> CloudData:
     return CloudData(pts, times, intensity)
 
 
-def read_npy(path: Path) -> CloudData:
+def read_npy(path: Path, stamp_ns: int | None = None) -> CloudData:
     try:
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as exc:
@@ -100,25 +81,26 @@ def read_npy(path: Path) -> CloudData:
         pts = np.c_[arr["x"], arr["y"], arr["z"]].astype(np.float64)
         tname = next((n for n in TIME_FIELDS if n in names), None)
         iname = next((n for n in INTENSITY_FIELDS if n in names), None)
-        times = times_to_relative_seconds(arr[tname]) if tname else None
+        times = relative_seconds(arr[tname], stamp_ns) if tname else None
         inten = arr[iname].astype(np.float32) if iname else None
         return CloudData(pts, times, inten)
     if arr.ndim != 2 or arr.shape[1] not in (3, 4, 5):
         raise InputError(path, f"expected an (N,3|4|5) array [x y z (intensity) (time_s)], got {arr.shape}")
     pts = arr[:, :3].astype(np.float64)
     inten = arr[:, 3].astype(np.float32) if arr.shape[1] >= 4 else None
-    times = times_to_relative_seconds(arr[:, 4]) if arr.shape[1] == 5 else None
+    times = relative_seconds(arr[:, 4], stamp_ns) if arr.shape[1] == 5 else None
     return CloudData(pts, times, inten)
 
 
-def read_cloud(path: str | Path) -> CloudData:
-    """Read one scan file, by suffix."""
+def read_cloud(path: str | Path, stamp_ns: int | None = None) -> CloudData:
+    """Read one scan file, by suffix; per-point times in seconds relative to the scan stamp
+    (stamp_ns, when known, recognises absolute times; see lidar_slam.io.point_times)."""
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix == ".bin":
         return read_bin(p)
     if suffix in (".pcd", ".ply"):
-        return read_o3d(p)
+        return read_o3d(p, stamp_ns)
     if suffix == ".npy":
-        return read_npy(p)
+        return read_npy(p, stamp_ns)
     raise InputError(p, f"unsupported scan format '{suffix}' (use {', '.join(SCAN_SUFFIXES)})")

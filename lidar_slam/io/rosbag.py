@@ -7,14 +7,12 @@ typestore built from the file's ros1msg schemas).
 
 Time convention of the Scans produced here:
 - `Scan.stamp_s` is the PointCloud2 header stamp in seconds (not the bag's receive time).
-- `Scan.point_times` are seconds relative to `stamp_s`. A relative time field (Ouster `t`, Livox
-  `offset_time`, Velodyne `time`) is taken as an offset from the header stamp as it stands, so
-  an Ouster cloud stamped at the sweep start gets times in [0, ~0.1] and a Velodyne cloud stamped
-  at the sweep end gets times in [~-0.1, 0]. An absolute time field (values within 10 s of the
+- `Scan.point_times` are seconds relative to `stamp_s`, converted by
+  `lidar_slam.io.point_times.relative_seconds` (the conversion every reader shares): a relative
+  field (Ouster `t`, Livox `offset_time`, Velodyne `time`) is an offset from the header stamp as
+  it stands, so an Ouster cloud stamped at the sweep start gets times in [0, ~0.1] and a Velodyne
+  cloud stamped at the sweep end gets times in [~-0.1, 0]; an absolute field (within 10 s of the
   header stamp, in s, us or ns) has the header stamp subtracted.
-- The unit of a relative field is inferred from its datatype and span (a sweep lasts ~0.1 s):
-  floating-point fields are seconds unless they span more than 2 (then us, or ns beyond 2e6);
-  integer fields are microseconds when they span 1e3..1e6, otherwise nanoseconds.
 """
 
 from __future__ import annotations
@@ -44,6 +42,7 @@ if sys.version_info >= (3, 14):
     from compression.zstd import ZstdError
 else:  # rosbags depends on the backport below 3.14
     from backports.zstd import ZstdError
+from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import INTENSITY_FIELDS, TIME_FIELDS
 from lidar_slam.types import Scan
 
@@ -53,7 +52,6 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 # PointField datatype -> NumPy type code (sensor_msgs/PointField INT8..FLOAT64).
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-_ABSOLUTE_TOL_S = 10.0
 
 # rosbags 0.11.9 raises its own errors for most damage, but fuzzing truncated/overwritten bags
 # also leaked these from its dependencies and asserts: lz4 frame errors (RuntimeError), index
@@ -115,7 +113,7 @@ def decode_pointcloud2(msg: Any) -> DecodedCloud:
         xyz = xyz[keep]
     times = intensity = None
     if tname:
-        times = _relative_seconds(rec["t"][keep] if n_dropped else rec["t"], header_stamp_ns(msg))
+        times = relative_seconds(rec["t"][keep] if n_dropped else rec["t"], header_stamp_ns(msg))
     if iname:
         intensity = (rec["i"][keep] if n_dropped else rec["i"]).astype(np.float32)
     return DecodedCloud(xyz, times, intensity, n_dropped)
@@ -150,33 +148,6 @@ def _records(msg: Any, wanted: dict[str, Any]) -> np.ndarray:
     grid = np.ndarray((height, width), dtype=dtype, buffer=data,
                       strides=(row_step if height > 1 else width * step, step))
     return grid.reshape(-1)
-
-
-def _relative_seconds(raw: np.ndarray, stamp_ns: int) -> np.ndarray | None:
-    """Per-point times in s, us or ns, relative or absolute -> seconds relative to the stamp."""
-    if raw.size == 0:
-        return np.zeros(0)
-    values = raw.astype(np.float64)
-    if not np.isfinite(values).all():
-        log.warning("per-point time field has NaN/inf values; scan left without times")
-        return None
-    is_float = raw.dtype.kind == "f"
-    lo, hi = float(values.min()), float(values.max())
-    mid, stamp_s = 0.5 * (lo + hi), stamp_ns * 1e-9
-    for scale in (1.0, 1e-6, 1e-9) if is_float else (1e-9, 1e-6, 1.0):
-        # Absolute when near the header stamp and nearer to it than to zero (sim time starts at 0).
-        dist = abs(mid * scale - stamp_s)
-        if stamp_ns > 0 and dist < _ABSOLUTE_TOL_S and dist < abs(mid * scale):
-            if is_float:
-                return values * scale - stamp_s
-            unit_ns = round(scale * 1e9)
-            return (raw.astype(np.int64) * unit_ns - stamp_ns) * 1e-9
-    span = hi - lo
-    if is_float:
-        scale = 1.0 if span <= 2.0 else 1e-6 if span <= 2e6 else 1e-9
-    else:
-        scale = 1e-6 if 1e3 <= span <= 1e6 else 1e-9
-    return values * scale
 
 
 class _Ros1Mcap:
@@ -368,6 +339,8 @@ class RosbagSource:
 
     index = 0-based message position in the topic; see the module docstring for stamps and times.
     """
+
+    kind = "rosbag"
 
     def __init__(self, path: str | Path, topic: str | None = None):
         self.path = Path(path)

@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, read_bin, read_cloud
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,
@@ -30,6 +31,8 @@ DEFAULT_PERIOD_S = 0.1
 
 class ScanSource(Protocol):
     name: str
+    kind: str  # "folder", "file", "kitti", "kitti_raw" or "rosbag" (reported in summary.json)
+    topic: str | None  # the bag topic read, None for other inputs
     ground_truth: np.ndarray | None
 
     def __len__(self) -> int: ...
@@ -64,37 +67,61 @@ def _scan_files(folder: Path) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def _load_stamps(path: Path, n: int) -> np.ndarray:
-    if path.is_file():
-        stamps = read_times(path)
-        if stamps.ndim != 1:
-            raise InputError(path, f"expected one stamp per line, found {stamps.shape[1]} columns")
-        if len(stamps) != n:
-            raise InputError(path, f"has {len(stamps)} stamps for {n} scans")
-        return stamps
+def _load_stamps(path: Path, n: int) -> np.ndarray | None:
+    """Scan stamps (s) from a times file with one line per scan; None when there is none."""
+    if not path.is_file():
+        return None
+    stamps = read_times(path)
+    if stamps.ndim != 1:
+        raise InputError(path, f"expected one stamp per line, found {stamps.shape[1]} columns")
+    if len(stamps) != n:
+        raise InputError(path, f"has {len(stamps)} stamps for {n} scans")
+    return stamps
+
+
+def _assumed_stamps(path: Path, n: int) -> np.ndarray:
+    """Stamps DEFAULT_PERIOD_S apart, said out loud: a 5 Hz sensor read this way gets half its
+    true speed (the poses are right, their stamps and the velocities are not)."""
+    if n > 1:
+        log.warning("%s not found: scans taken as %.1f s apart (%.0f Hz); add it (one stamp in "
+                    "s per scan) if the sensor ran at another rate", path, DEFAULT_PERIOD_S,
+                    1.0 / DEFAULT_PERIOD_S)
     return np.arange(n) * DEFAULT_PERIOD_S
 
 
+def _stamp_ns(stamp_s: float, known: bool) -> int | None:
+    return round(stamp_s * 1e9) if known else None
+
+
 class FolderSource:
-    """A folder of scan files (in the folder or in its scans/ subfolder), naturally sorted.
+    """A folder of scan files (in the folder or in its scans/ subfolder), naturally sorted, or a
+    single scan file.
 
     Optional beside them: poses.txt (KITTI 12-column T_world_sensor, one line per scan) as reference
-    and times.txt (one stamp per scan, s). Without times.txt, scans are 0.1 s apart.
+    and times.txt (one stamp per scan, s). Without times.txt, scans are 0.1 s apart (a warning).
     """
+
+    topic = None
 
     def __init__(self, root: Path):
         self.root = root
-        folder = root
+        self.ground_truth = None
+        if root.is_file():  # one scan
+            self.kind, self.name, self.files = "file", root.stem, [root]
+            self.stamps, self.stamps_known = np.zeros(1), False
+            return
+        self.kind = "folder"
         files = _scan_files(root)
         if not files and (root / "scans").is_dir():
-            folder = root / "scans"
-            files = _scan_files(folder)
+            files = _scan_files(root / "scans")
         if not files:
             raise InputError(root, f"no scans found (looked for {', '.join(SCAN_SUFFIXES)} files)")
         self.files = files
         self.name = root.name
-        self.stamps = _load_stamps(root / "times.txt", len(files))
-        self.ground_truth = None
+        stamps = _load_stamps(root / "times.txt", len(files))
+        self.stamps_known = stamps is not None
+        self.stamps = stamps if stamps is not None else _assumed_stamps(root / "times.txt",
+                                                                          len(files))
         if (root / "poses.txt").is_file():
             gt = read_kitti_poses(root / "poses.txt")
             if len(gt) != len(files):
@@ -107,7 +134,8 @@ class FolderSource:
     def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]:
         stop = len(self.files) if count is None else min(len(self.files), start + count)
         for i in range(start, stop):
-            yield make_scan(i, self.stamps[i], read_cloud(self.files[i]), str(self.files[i]))
+            cloud = read_cloud(self.files[i], _stamp_ns(self.stamps[i], self.stamps_known))
+            yield make_scan(i, self.stamps[i], cloud, str(self.files[i]))
 
 
 class KittiSource:
@@ -119,6 +147,8 @@ class KittiSource:
     per-point times (s, relative to the scan stamp) for simulated sequences.
     """
 
+    kind, topic = "kitti", None
+
     def __init__(self, root: Path, vertical_correction: bool = False):
         self.root = root
         self.name = root.name
@@ -127,7 +157,10 @@ class KittiSource:
             raise InputError(root / "velodyne", "no .bin scans found")
         self.vertical_correction = vertical_correction
         self.Tr = read_kitti_calib_tr(root / "calib.txt")
-        self.stamps = _load_stamps(root / "times.txt", len(self.files))
+        stamps = _load_stamps(root / "times.txt", len(self.files))
+        self.stamps_known = stamps is not None
+        self.stamps = stamps if stamps is not None else _assumed_stamps(root / "times.txt",
+                                                                          len(self.files))
         self.ground_truth = None
         for cand in (root / "poses.txt", root.parent.parent / "poses" / f"{root.name}.txt"):
             if cand.is_file():
@@ -140,21 +173,78 @@ class KittiSource:
     def __len__(self) -> int:
         return len(self.files)
 
-    def _read(self, path: Path) -> CloudData:
+    def _read(self, path: Path, stamp_ns: int | None) -> CloudData:
         cloud = read_bin(path)
         tfile = self.root / "velodyne_times" / path.name
         times = None
         if tfile.is_file():
-            times = np.fromfile(tfile, dtype=np.float32).astype(np.float64)
-            if len(times) != len(cloud.points):
-                raise InputError(tfile, f"has {len(times)} times for {len(cloud.points)} points")
+            raw = np.fromfile(tfile, dtype=np.float32)
+            if len(raw) != len(cloud.points):
+                raise InputError(tfile, f"has {len(raw)} times for {len(cloud.points)} points")
+            times = relative_seconds(raw, stamp_ns)
         pts = correct_kitti_scan(cloud.points) if self.vertical_correction else cloud.points
         return CloudData(pts, times, cloud.intensity)
 
     def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]:
         stop = len(self.files) if count is None else min(len(self.files), start + count)
         for i in range(start, stop):
-            yield make_scan(i, self.stamps[i], self._read(self.files[i]), str(self.files[i]))
+            cloud = self._read(self.files[i], _stamp_ns(self.stamps[i], self.stamps_known))
+            yield make_scan(i, self.stamps[i], cloud, str(self.files[i]))
+
+
+def read_kitti_raw_timestamps(path: Path) -> np.ndarray:
+    """KITTI raw timestamps.txt ('2011-09-26 13:02:25.964389445' per line) -> seconds since the
+    UNIX epoch, the clock taken as UTC (the fraction is kept to the nanosecond)."""
+    from datetime import datetime, timezone
+
+    stamps = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        whole, _, frac = line.strip().partition(".")
+        try:
+            t = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc)
+            stamps.append(t.timestamp() + (float("0." + frac) if frac else 0.0))
+        except ValueError:
+            raise InputError(path, f"line {n}: not a 'YYYY-MM-DD HH:MM:SS.fraction' stamp "
+                                   f"({line.strip()[:40]!r})") from None
+    return np.array(stamps)
+
+
+class KittiRawSource:
+    """A KITTI raw drive: velodyne_points/data/*.bin with velodyne_points/timestamps.txt (the
+    drive folder or its velodyne_points folder). No ground truth (the raw drives' OXTS poses are
+    not read)."""
+
+    kind, topic = "kitti_raw", None
+
+    def __init__(self, root: Path, vertical_correction: bool = False):
+        self.root = root
+        self.name = root.parent.name if root.name == "velodyne_points" else root.name
+        self.files = sorted((root / "data").glob("*.bin"), key=lambda p: natural_key(p.name))
+        if not self.files:
+            raise InputError(root / "data", "no .bin scans found")
+        self.vertical_correction = vertical_correction
+        self.ground_truth = None
+        stamps_path = root / "timestamps.txt"
+        if stamps_path.is_file():
+            self.stamps = read_kitti_raw_timestamps(stamps_path)
+            if len(self.stamps) != len(self.files):
+                raise InputError(stamps_path, f"has {len(self.stamps)} stamps for "
+                                              f"{len(self.files)} scans")
+        else:
+            self.stamps = _assumed_stamps(stamps_path, len(self.files))
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]:
+        stop = len(self.files) if count is None else min(len(self.files), start + count)
+        for i in range(start, stop):
+            cloud = read_bin(self.files[i])
+            if self.vertical_correction:
+                cloud = CloudData(correct_kitti_scan(cloud.points), None, cloud.intensity)
+            yield make_scan(i, self.stamps[i], cloud, str(self.files[i]))
 
 
 def correct_kitti_scan(points: np.ndarray, angle_deg: float = 0.205) -> np.ndarray:
@@ -179,7 +269,8 @@ def correct_kitti_scan(points: np.ndarray, angle_deg: float = 0.205) -> np.ndarr
 
 def open_source(path: str | Path, topic: str | None = None, kitti_vertical_correction: bool = False
                 ) -> ScanSource:
-    """Pick the reader for a path: rosbag/mcap, KITTI sequence, or a folder of scans."""
+    """Pick the reader for a path: rosbag/mcap, KITTI sequence, KITTI raw drive, a folder of
+    scans or one scan file. `topic` only applies to bags (a warning otherwise)."""
     p = Path(path)
     if not p.exists():
         raise InputError(p, "does not exist")
@@ -188,10 +279,19 @@ def open_source(path: str | Path, topic: str | None = None, kitti_vertical_corre
         from lidar_slam.io.rosbag import RosbagSource
 
         return RosbagSource(p, topic=topic)
+    if topic is not None:
+        log.warning("--topic %s ignored: %s is not a rosbag", topic, p)
     if p.is_file():
-        raise InputError(p, "expected a folder of scans, a KITTI sequence or a rosbag")
+        if p.suffix.lower() in SCAN_SUFFIXES:
+            return FolderSource(p)
+        raise InputError(p, "expected a folder of scans, a scan file "
+                            f"({', '.join(SCAN_SUFFIXES)}), a KITTI sequence or a rosbag")
     if (p / "velodyne").is_dir():
         return KittiSource(p, vertical_correction=kitti_vertical_correction)
+    for raw in (p / "velodyne_points", p):
+        if (raw / "data").is_dir() and (raw.name == "velodyne_points"
+                                        or (raw / "timestamps.txt").is_file()):
+            return KittiRawSource(raw, vertical_correction=kitti_vertical_correction)
     return FolderSource(p)
 
 

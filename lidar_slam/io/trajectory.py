@@ -9,6 +9,7 @@ import numpy as np
 
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import matrix_from_quat, quat_from_matrix
+from lidar_slam.io.atomic import atomic_path
 
 
 def _loadtxt(path: Path, **kwargs) -> np.ndarray:
@@ -38,9 +39,10 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
 
 
 def write_kitti_poses(path: str | Path, poses: np.ndarray) -> None:
-    """Write (K, 4, 4) poses in KITTI format."""
+    """Write (K, 4, 4) poses in KITTI format (atomically)."""
     rows = np.asarray(poses)[:, :3, :4].reshape(-1, 12)
-    np.savetxt(path, rows, fmt="%.9e")
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, rows, fmt="%.9e")
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -61,11 +63,12 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_tum(path: str | Path, stamps_s: np.ndarray, poses: np.ndarray) -> None:
-    """Write poses with stamps in TUM format."""
+    """Write poses with stamps in TUM format (atomically)."""
     poses = np.asarray(poses)
     q = quat_from_matrix(poses[:, :3, :3]) if len(poses) else np.zeros((0, 4))
     data = np.c_[np.asarray(stamps_s, float), poses[:, :3, 3], q]
-    np.savetxt(path, data, fmt="%.9f")
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, data, fmt="%.9f")
 
 
 def read_kitti_calib_tr(path: str | Path) -> np.ndarray:

@@ -60,6 +60,19 @@ class LoopDetector:
         self.store = store
         # Descriptor grids go to the keyframe store's folder: RAM keeps a few hundred bytes each.
         self.index = ScanContextIndex(cfg.loop.scan_context, store.root / "descriptors.bin")
+        self._path_m = [0.0]  # odometry path travelled up to each keyframe (metres)
+
+    def path_m(self, kf_id: int) -> float:
+        """Odometry path length from keyframe 0 to kf_id (keyframe to keyframe, metres)."""
+        while len(self._path_m) <= kf_id:
+            k = len(self._path_m)
+            step = (self.store.T_world_kf_odom(k)[:3, 3]
+                    - self.store.T_world_kf_odom(k - 1)[:3, 3])
+            self._path_m.append(self._path_m[-1] + float(np.linalg.norm(step)))
+        return self._path_m[kf_id]
+
+    def _index(self, kf_id: int, points: np.ndarray) -> None:
+        self.index.add(kf_id, points, self.path_m(kf_id), self.store.stamp_s(kf_id))
 
     def reindex(self, upto: int) -> None:
         """Index keyframes 0..upto from the store into a fresh detector, as process() would
@@ -67,7 +80,7 @@ class LoopDetector:
         for kf_id in range(upto + 1):
             pts = self.store.get(kf_id).points
             if len(pts):
-                self.index.add(kf_id, pts.astype(np.float64))
+                self._index(kf_id, pts.astype(np.float64))
 
     def submap(self, kf_id: int, radius: int, upto: int) -> np.ndarray:
         """Clouds of keyframes kf_id-radius..kf_id+radius (none after `upto`) in kf_id's frame."""
@@ -88,7 +101,7 @@ class LoopDetector:
         constraint = None
         if len(query_pts) == 0:  # nothing in range: a graph node, but nothing to describe
             return LoopResult(kf_id, (), None)
-        found = self.index.query(kf.id, query_pts)
+        found = self.index.query(kf.id, query_pts, self.path_m(kf.id), self.store.stamp_s(kf.id))
         radius = self.cfg.loop.verify.submap_radius
         for cand in found.candidates[: self.cfg.loop.max_verify]:
             query_cloud = self.submap(kf.id, radius, kf.id)
@@ -103,21 +116,25 @@ class LoopDetector:
                 log.info("loop accepted: frame %d -> frame %d (fitness %.2f)", kf.frame_index,
                          records[-1].match_frame, res.fitness)
                 break
-        self.index.add(kf.id, query_pts)
+        self._index(kf.id, query_pts)
         return LoopResult(kf_id, tuple(records), constraint)
 
 
-def loops_csv_rows(records: list[LoopRecord]) -> list[list]:
-    """loops.csv rows (header first)."""
+def loops_csv_rows(records: list[LoopRecord],
+                   backend: dict[tuple[int, int], str] | None = None) -> list[list]:
+    """loops.csv rows (header first). `accepted` means the loop passed the ICP gates; `backend`
+    (accepted loops only) what the final solve made of it, keyed (match kf, query kf): inlier,
+    or rejected (GNC weight 0; with Huber, residual beyond the 99 % inlier gate)."""
     rows: list[list] = [["query_frame", "match_frame", "descriptor_distance", "yaw_guess_deg",
                          "fitness", "rmse_m", "accepted", "reason", "x", "y", "z", "qx", "qy",
-                         "qz", "qw"]]
-
+                         "qz", "qw", "backend"]]
+    backend = backend or {}
     for r in records:
         pose = to_xyz_quat(r.T_match_query) if r.T_match_query is not None else [np.nan] * 7
+        status = backend.get((r.match_kf, r.query_kf), "") if r.accepted else ""
         rows.append([r.query_frame, r.match_frame, f"{r.distance:.4f}", f"{r.yaw_guess_deg:.1f}",
                      f"{r.fitness:.4f}", f"{r.rmse_m:.4f}", int(r.accepted), r.reason,
-                     *[f"{v:.6f}" for v in pose]])
+                     *[f"{v:.6f}" for v in pose], status])
     return rows
 
 

@@ -134,6 +134,8 @@ class ScanContextIndex:
         self.cfg = cfg
         size = cfg.rings * cfg.sectors
         self._ids = _Rows(1, np.int64)
+        self._when = _Rows(2, np.float64)  # path travelled (m) and stamp (s) of each keyframe
+        self._stamped = True  # every indexed keyframe has a stamp
         self._ring = _Rows(cfg.rings)
         self._sector = _Rows(cfg.sectors)
         self._R = _Rows(9, np.float64)
@@ -160,12 +162,24 @@ class ScanContextIndex:
         self._last = (kf_id, desc)
         return desc
 
-    def add(self, kf_id: int, points_kf: np.ndarray) -> None:
-        """Index a keyframe (ids increasing); reuses the descriptor a query of kf_id computed."""
+    def add(self, kf_id: int, points_kf: np.ndarray, path_m: float,
+            stamp_s: float = np.nan) -> None:
+        """Index a keyframe (ids, path travelled in metres and stamps increasing); reuses the
+        descriptor a query of kf_id computed."""
         if self._ids.n and kf_id <= int(self._ids.data[self._ids.n - 1, 0]):
             raise ValueError(f"keyframe ids must increase: {kf_id} after "
                              f"{int(self._ids.data[self._ids.n - 1, 0])}")
-        desc = self._describe(kf_id, points_kf)
+        self._append(kf_id, self._describe(kf_id, points_kf), path_m, stamp_s)
+
+    def add_grid(self, kf_id: int, grid: np.ndarray) -> None:
+        """Index a keyframe by a stored descriptor grid (rings, sectors), as a saved map holds
+        them (ids increasing); its levelling rotation is not stored, so it is NaN here (verify()
+        levels the clouds itself; initial_guess() cannot be used)."""
+        grid = np.asarray(grid, np.float64)
+        self._append(kf_id, Descriptor(grid, grid.mean(axis=1), grid.mean(axis=0),
+                                       np.full((3, 3), np.nan)), np.nan, np.nan)
+
+    def _append(self, kf_id: int, desc: Descriptor, path_m: float, stamp_s: float) -> None:
         grid = desc.grid.astype(np.float32).ravel()
         if self._grids is not None:
             self._grids.append(grid)
@@ -173,6 +187,8 @@ class ScanContextIndex:
             os.pwrite(self._grid_fd, grid.tobytes(), self._ids.n * grid.nbytes)
         self._pos[kf_id] = self._ids.n
         self._ids.append(kf_id)
+        self._when.append(np.array([path_m, stamp_s]))
+        self._stamped = self._stamped and not np.isnan(stamp_s)
         self._ring.append(desc.ring_key)
         self._sector.append(desc.sector_key)
         self._R.append(desc.R_level_kf.ravel())
@@ -210,13 +226,32 @@ class ScanContextIndex:
         dist = np.linalg.norm(keys - key[None, :], axis=1)
         return np.argsort(dist, kind="stable")[: self.cfg.candidates]
 
-    def query(self, kf_id: int, points_kf: np.ndarray) -> QueryResult:
-        """Loop candidates for keyframe kf_id among keyframes at least exclude_recent ids older."""
-        limit = kf_id - self.cfg.exclude_recent
-        n_eligible = int(np.searchsorted(self._ids.view()[:, 0], limit, side="right"))
+    def n_eligible(self, path_m: float, stamp_s: float = np.nan) -> int:
+        """How many indexed keyframes (the oldest ones) are loop candidates for a keyframe at
+        this path length and stamp: exclude_recent_m of path or exclude_recent_s seconds back."""
+        when = self._when.view()
+        n_path = int(np.searchsorted(when[:, 0], path_m - self.cfg.exclude_recent_m, "right"))
+        if np.isnan(stamp_s) or not self._stamped:
+            return n_path
+        n_time = int(np.searchsorted(when[:, 1], stamp_s - self.cfg.exclude_recent_s, "right"))
+        return max(n_path, n_time)
+
+    def query(self, kf_id: int, points_kf: np.ndarray, path_m: float,
+              stamp_s: float = np.nan) -> QueryResult:
+        """Loop candidates for keyframe kf_id among the eligible older keyframes."""
+        n_eligible = self.n_eligible(path_m, stamp_s)
         if n_eligible == 0:
             return QueryResult()
-        desc = self._describe(kf_id, points_kf)
+        return self._query(kf_id, self._describe(kf_id, points_kf), n_eligible)
+
+    def query_all(self, points: np.ndarray) -> QueryResult:
+        """Candidates among every indexed keyframe for a cloud that is not indexed (a scan to
+        localise in a saved map); the candidates' query id is -1."""
+        if len(self) == 0:
+            return QueryResult()
+        return self._query(-1, describe(points, self.cfg), len(self))
+
+    def _query(self, kf_id: int, desc: Descriptor, n_eligible: int) -> QueryResult:
         scored = []
         for j in self._nearest(desc.ring_key, n_eligible):
             dist, shift = align(desc, self._stored(int(j)), self.cfg.local_search_sectors)

@@ -119,7 +119,7 @@ def _icp(src: _Cloud, tgt: _Cloud, T0: np.ndarray, max_corr_m: float,
     """One ICP run query -> match from T0; returns T_match_query. small_gicp's PLANE_ICP
     weighs each axis of the residual by the normal's component, so unlike open3d's
     point-to-plane it resists sliding along oblique walls and needs more iterations to pull in
-    metres (tools/loop_sweep.py --every-scan: 77 loops accepted vs open3d's 88, none wrong)."""
+    metres (tools/loop_tuning.py sweep --every-scan: 77 loops accepted vs open3d's 88, none wrong)."""
     result = small_gicp.align(
         tgt.cloud, src.cloud, tgt.tree, init_T_target_source=T0,
         registration_type="GICP" if cfg.method == "gicp" else "PLANE_ICP",

@@ -83,6 +83,16 @@ class LoopWorker:
             self._pool = ProcessPoolExecutor(
                 1, mp_context=ctx, initializer=_start_process,
                 initargs=(cfg.model_dump(mode="json"), str(Path(store.root))))
+            # Ctrl-C in a terminal reaches the whole process group. Until its initializer runs
+            # (a second or two of imports) the worker would die of it, and the run lose its
+            # outputs (BrokenProcessPool): start it now with SIGINT blocked, a mask it inherits,
+            # as multiprocessing's resource tracker does. The parent gets a SIGINT sent
+            # meanwhile as soon as it is unblocked.
+            blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            try:
+                self._pool.submit(int)  # spawns the worker process, which idles until needed
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         else:
             from lidar_slam.loop.closer import LoopDetector
 

@@ -1,6 +1,6 @@
 """Stock KISS-ICP (kiss_icp.kiss_icp.KissICP, default config) on a sequence; writes KITTI poses.
 
-Usage: python tools/stock_kiss_icp.py DATA OUT_POSES [--start N] [--n-scans N] [--deskew]
+Usage: python tools/peers/stock_kiss_icp.py DATA OUT_POSES [--start N] [--n-scans N] [--deskew]
 Scans are read with lidar_slam's readers (NumPy only for .bin), everything else is kiss-icp's own.
 With --deskew, per-point times are normalised to [0, 1] and passed to register_frame, which then
 deskews internally (to the sweep end, as kiss-icp does).

@@ -16,7 +16,7 @@ Methods (all start at the reference relative pose, scans at full resolution unle
   kiss     kiss-icp's own robust point-to-point registration against a voxel map of the match
   submap   point-to-plane between submaps of +-2 scans placed with the reference poses
 
-    python tools/check_reference.py ../shared/data/ouster_os0_loop_balm \
+    python tools/forensics/check_reference.py ../shared/data/ouster_os0_loop_balm \
         --loop 172:106 --loop 169:112 --control 133:128
     (without --loop/--control: loop pairs are found from the reference poses)
 

@@ -1,5 +1,10 @@
-"""Loop detection + verification over a sequence with reference poses, as the pipeline would run
-them: keyframes chosen in order (KeyframeSelector on the reference poses, or every scan), each
+"""Loop detection and verification, measured outside the pipeline.
+
+python tools/loop_tuning.py sweep [DATA] [--config FILE] [--set loop.scan_context.threshold=0.25]
+       [--every-scan] [--submap N] [--verify-top K] [--quiet]
+
+sweep: loop detection + verification over a sequence with reference poses, as the pipeline would
+run them: keyframes chosen in order (KeyframeSelector on the reference poses, or every scan), each
 queried against the earlier non-recent ones, every candidate verified.
 
 Prints one row per candidate (scan-context distance, yaw guess, fitness, rmse, accepted/reason,
@@ -11,14 +16,21 @@ Keyframe clouds are built like the pipeline's: range-cropped to map.max_range_m 
 keyframes.cloud_voxel_m. The match cloud may be a submap of +-N neighbouring keyframes merged
 with the reference poses (the pipeline would use its odometry poses).
 
-Usage: python tools/loop_sweep.py [DATA] [--config FILE] [--set loop.scan_context.threshold=0.25]
-       [--every-scan] [--submap N] [--verify-top K] [--quiet]
-DATA defaults to ../shared/data/ouster_os0_loop_balm (scans/*.bin + poses.txt).
+python tools/loop_tuning.py cost [KITTI_SEQ_DIR] [--config FILE] [--set a.b=value] [--repeats N]
+
+cost: per keyframe on KITTI-sized scans (~120k points). KITTI 00 frames 0-15 hold no loop, so the last scan is queried against the others (recent ones
+not excluded) and verified against several earlier ones 3-13 m back, with the ground truth
+saying whether the verified pose is right (1 m / 5 deg). Keyframe clouds are built like the
+pipeline's (range <= map.max_range_m, keyframes.cloud_voxel_m voxels); query and match clouds are
+submaps (LoopCloser: the keyframe and its predecessors / +-N neighbours, merged with GT poses).
+
+Prints wall and CPU milliseconds (CPU sums threads; on a shared machine it is the fairer number).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -29,13 +41,17 @@ from lidar_slam.config import load_config
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import inverse, relative, rotation_angle_deg, transform_points, yaw_rad
 from lidar_slam.io.pointcloud import read_cloud
+from lidar_slam.io.sources import KittiSource
 from lidar_slam.io.trajectory import read_kitti_poses
 from lidar_slam.keyframes import KeyframeSelector
-from lidar_slam.loop.scan_context import ScanContextIndex
+from lidar_slam.loop import adapt
+from lidar_slam.loop.scan_context import ScanContextIndex, describe
 from lidar_slam.loop.verify import verify
+from lidar_slam.types import LoopCandidate
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "ouster_os0_loop_balm"
+OUSTER = REPO.parent / "shared" / "data" / "ouster_os0_loop_balm"
+KITTI16 = REPO.parent / "shared" / "data" / "kitti00_first16"
 
 
 def overrides(pairs: list[str]) -> dict:
@@ -57,9 +73,9 @@ def keyframe_cloud(path: Path, max_range_m: float, voxel_m: float) -> np.ndarray
     return voxel_downsample(pts, voxel_m)[0]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("data", nargs="?", default=str(DEFAULT_DATA))
+def sweep(argv: list[str]) -> None:
+    ap = argparse.ArgumentParser(prog="loop_tuning.py sweep")
+    ap.add_argument("data", nargs="?", default=str(OUSTER))
     ap.add_argument("--config", default=None)
     ap.add_argument("--set", action="append", default=[], help="config override a.b=value")
     ap.add_argument("--every-scan", action="store_true", help="every scan is a keyframe")
@@ -71,20 +87,22 @@ def main() -> None:
     ap.add_argument("--verify-top", type=int, default=3, help="verify at most K candidates/query")
     ap.add_argument("--quiet", action="store_true", help="summary only")
     ap.add_argument("--csv", default=None, help="also write every candidate row to this CSV")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     cfg = load_config(args.config, overrides(args.set))
+    data = Path(args.data)
+    files = sorted((data / "scans").glob("*.bin"))
+    first = np.fromfile(files[0], np.float32).reshape(-1, 4)[:, :3]
+    cfg = adapt.apply(cfg, adapt.auto_values(cfg, first))  # "auto" settings, as a run fixes them
     sc_cfg, v_cfg = cfg.loop.scan_context, cfg.loop.verify
     submap = v_cfg.submap_radius if args.submap is None else args.submap
     q_submap = v_cfg.submap_radius if args.query_submap is None else args.query_submap
-    data = Path(args.data)
-    files = sorted((data / "scans").glob("*.bin"))
     poses = read_kitti_poses(data / "poses.txt")
     selector = KeyframeSelector(cfg.keyframes)
     kf_scan = [i for i, T in enumerate(poses) if args.every_scan or selector.is_keyframe(T)]
     print(f"{len(kf_scan)} keyframes of {len(files)} scans; scan context {sc_cfg.rings}x"
           f"{sc_cfg.sectors} r={sc_cfg.max_radius_m} m thr={sc_cfg.threshold} exclude_recent="
-          f"{sc_cfg.exclude_recent} level={sc_cfg.level_to_ground}; verify {v_cfg.method} "
+          f"{sc_cfg.exclude_recent_m} m level={sc_cfg.level_to_ground}; verify {v_cfg.method} "
           f"voxel={v_cfg.voxel_m} min_fitness={v_cfg.min_fitness} min_margin={v_cfg.min_margin}; "
           f"match submap +-{submap} kf, query submap -{q_submap} kf; keyframe voxel "
           f"{cfg.keyframes.cloud_voxel_m} m")
@@ -103,10 +121,12 @@ def main() -> None:
     if not args.quiet:
         print(" query match  dist  yaw_g  yaw_ref  ref_d_m  fitness  rmse   margin  result  "
               "vs_ref  err_m  err_deg  verify_ms  reason")
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[kf_scan][:, :3, 3], axis=0),
+                                               axis=1))]
     for k, i in enumerate(kf_scan):
         t0 = time.perf_counter()
-        res = index.query(k, clouds[k])
-        index.add(k, clouds[k])
+        res = index.query(k, clouds[k], path[k])
+        index.add(k, clouds[k], path[k])
         t_detect.append((time.perf_counter() - t0) * 1e3)
         for cand in res.candidates[: args.verify_top]:
             m = cand.match
@@ -149,6 +169,90 @@ def main() -> None:
         if t:
             print(f"{name}: mean {np.mean(t):.1f} ms, median {np.median(t):.1f} ms, "
                   f"max {np.max(t):.1f} ms (n={len(t)})")
+
+
+def timed(fn, repeats: int):
+    """(result, median wall ms, median CPU ms) of fn() over repeats runs."""
+    walls, cpus = [], []
+    for _ in range(repeats):
+        w, c = time.perf_counter(), time.process_time()
+        out = fn()
+        walls.append((time.perf_counter() - w) * 1e3)
+        cpus.append((time.process_time() - c) * 1e3)
+    return out, float(np.median(walls)), float(np.median(cpus))
+
+
+def cost(argv: list[str]) -> None:
+    ap = argparse.ArgumentParser(prog="loop_tuning.py cost")
+    ap.add_argument("data", nargs="?", default=str(KITTI16))
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--set", action="append", default=[], help="config override a.b=value")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args(argv)
+    cfg = load_config(args.config, overrides(args.set))
+    src = KittiSource(Path(args.data))
+    poses = src.ground_truth
+    raw = [s.points for s in src.scans()]
+    cfg = adapt.apply(cfg, adapt.auto_values(cfg, raw[0]))  # "auto" settings, as a run fixes them
+    sc_cfg = cfg.loop.scan_context.model_copy(update={"exclude_recent_m": 0.0})
+    v_cfg = cfg.loop.verify
+    print(f"{len(raw)} scans, {np.mean([len(p) for p in raw]):.0f} points each on average")
+
+    def kf_cloud(pts: np.ndarray) -> np.ndarray:
+        pts = pts[np.linalg.norm(pts, axis=1) <= cfg.map.max_range_m]
+        return voxel_downsample(pts, cfg.keyframes.cloud_voxel_m)[0]
+
+    clouds, w, c = timed(lambda: [kf_cloud(p) for p in raw], 1)
+    print(f"keyframe cloud (crop + {cfg.keyframes.cloud_voxel_m} m voxels, pipeline's cost): "
+          f"{w / len(raw):.1f} ms wall per scan -> {np.mean([len(p) for p in clouds]):.0f} points")
+    _, w, c = timed(lambda: describe(raw[-1], sc_cfg), args.repeats)
+    print(f"scan context of a raw scan ({len(raw[-1])} points): {w:.1f} ms wall, {c:.1f} ms CPU")
+    _, w, c = timed(lambda: describe(clouds[-1], sc_cfg), args.repeats)
+    print(f"scan context of a keyframe cloud ({len(clouds[-1])} points): {w:.1f} ms wall, "
+          f"{c:.1f} ms CPU")
+    q = len(clouds) - 1
+
+    def detect():
+        index = ScanContextIndex(sc_cfg)
+        for k in range(q):
+            index.add(k, clouds[k], float(k))
+        t = time.perf_counter(), time.process_time()
+        res = index.query(q, clouds[q], float(q))
+        return res, (time.perf_counter() - t[0]) * 1e3, (time.process_time() - t[1]) * 1e3
+
+    res, w, c = detect()
+    print(f"detection (query vs {q} keyframes, incl. descriptor): {w:.1f} ms wall, {c:.1f} ms CPU;"
+          f" best match {res.best_match} at distance {res.best_distance:.3f}")
+
+    def submap(k: int, before: int, after: int) -> np.ndarray:
+        parts = [transform_points(relative(poses[k], poses[j]), clouds[j])
+                 for j in range(max(0, k - before), min(len(clouds), k + after + 1))]
+        return np.vstack(parts)
+
+    r = v_cfg.submap_radius
+    source = submap(q, r, 0)
+    print(f"verification (query submap {len(source)} points, match submaps +-{r}):")
+    for m in (0, 3, 5, 8, 10):
+        target = submap(m, r, r)
+        dist, yaw = 0.0, 0.0
+        for cand in res.candidates:
+            if cand.match == m:
+                dist, yaw = cand.score, cand.yaw_guess_rad
+        cand = LoopCandidate(q, m, dist, yaw)
+        v, w, c = timed(lambda: verify(cand, source, target, v_cfg), args.repeats)
+        d = inverse(relative(poses[m], poses[q])) @ v.T_match_query
+        err_m, err_deg = float(np.linalg.norm(d[:3, 3])), float(rotation_angle_deg(d))
+        ok = err_m < 1.0 and err_deg < 5.0
+        print(f"  {q} -> {m} ({np.linalg.norm(poses[q][:3, 3] - poses[m][:3, 3]):4.1f} m, "
+              f"{len(target)} pts): {w:6.1f} ms wall {c:6.1f} ms CPU  fitness {v.fitness:.2f} "
+              f"margin {v.margin:.2f} {'ACCEPT' if v.accepted else 'reject'} "
+              f"{'correct' if ok else 'WRONG'} ({err_m:.2f} m {err_deg:.1f} deg)  {v.reason}")
+
+
+def main() -> None:
+    if len(sys.argv) < 2 or sys.argv[1] not in ("sweep", "cost"):
+        sys.exit("usage: python tools/loop_tuning.py sweep|cost [args...] (see the docstring)")
+    (sweep if sys.argv[1] == "sweep" else cost)(sys.argv[2:])
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Stock KISS-SLAM (kiss_slam 0.0.2, default config) on a sequence; writes KITTI poses + closures.
 
-Usage: python tools/kiss_slam_peer.py DATA OUT_POSES [--closures FILE.json] [--start N]
+Usage: python tools/peers/kiss_slam_peer.py DATA OUT_POSES [--closures FILE.json] [--start N]
        [--n-scans N] [--config FILE]
 
 Scans are read with lidar_slam's readers, everything else is what kiss_slam.pipeline.SlamPipeline

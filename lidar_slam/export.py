@@ -1,0 +1,140 @@
+"""A saved map's points as a file other tools open: PLY / PCD (open3d's writers) or LAS / LAZ
+(laspy, the only module that imports it), with intensity and the id of the keyframe each point
+comes from. Points are the keyframe clouds as the run stored them, placed with the final poses in
+the map frame (the frame of the run's poses_kitti.txt); --voxel keeps the first of each voxel."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam.errors import LidarSlamError
+from lidar_slam.io.atomic import atomic_path
+from lidar_slam.saved_map import SavedMap
+
+log = logging.getLogger(__name__)
+
+
+class PointFormat(str, Enum):
+    ply = "ply"
+    pcd = "pcd"
+    las = "las"
+    laz = "laz"
+
+
+class MissingDependency(LidarSlamError):
+    """An optional package needed for this output is not installed."""
+
+
+LASPY_HINT = "LAS/LAZ export needs laspy: pip install 'laspy[lazrs]' (or 'lidar-slam[export]')"
+
+
+@dataclass(frozen=True)
+class MapPoints:
+    """points (N, 3) float64 map frame metres; intensity (N,) float32 (zeros when the scans
+    had none); keyframe (N,) uint32 id of the keyframe each point comes from."""
+
+    points: np.ndarray
+    intensity: np.ndarray
+    keyframe: np.ndarray
+
+
+def map_points(saved_map: SavedMap, voxel_m: float | None = None) -> MapPoints:
+    """Every stored keyframe point in the map frame; with voxel_m, the first point (keyframe
+    order) of each voxel_m voxel."""
+    pts, inten, kf = [], [], []
+    for k in range(len(saved_map)):
+        if not saved_map.counts[k]:
+            continue
+        p, i = saved_map.points_map(k)
+        pts.append(p)
+        inten.append(np.zeros(len(p), np.float32) if i is None else i.astype(np.float32))
+        kf.append(np.full(len(p), k, np.uint32))
+    if not pts:
+        return MapPoints(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.uint32))
+    out = MapPoints(np.concatenate(pts), np.concatenate(inten), np.concatenate(kf))
+    if voxel_m is None:
+        return out
+    cells = np.floor(out.points / voxel_m).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    keep = np.sort(first)
+    return MapPoints(out.points[keep], out.intensity[keep], out.keyframe[keep])
+
+
+def format_of(path: Path, fmt: PointFormat | None) -> PointFormat:
+    """The format asked for, else the one the file name says."""
+    if fmt is not None:
+        return fmt
+    try:
+        return PointFormat(path.suffix.lower().lstrip("."))
+    except ValueError:
+        raise LidarSlamError(f"{path}: cannot tell the format from the name; pass --format "
+                             f"{'|'.join(f.value for f in PointFormat)}") from None
+
+
+def write_points(path: Path, fmt: PointFormat, mp: MapPoints) -> int:
+    """Write mp to path (atomically) in fmt; returns the number of points written."""
+    if fmt in (PointFormat.las, PointFormat.laz):
+        _write_las(path, mp, compressed=fmt == PointFormat.laz)
+    else:
+        _write_o3d(path, fmt, mp)
+    return len(mp.points)
+
+
+def _write_o3d(path: Path, fmt: PointFormat, mp: MapPoints) -> None:
+    from lidar_slam.o3d import o3d
+
+    cloud = o3d.t.geometry.PointCloud()
+    cloud.point.positions = o3d.core.Tensor(mp.points.astype(np.float32))
+    cloud.point.intensity = o3d.core.Tensor(mp.intensity.reshape(-1, 1))
+    # PLY has no unsigned 32-bit property in open3d's writer.
+    kf_type = np.int32 if fmt == PointFormat.ply else np.uint32
+    cloud.point.keyframe = o3d.core.Tensor(mp.keyframe.astype(kf_type).reshape(-1, 1))
+    with atomic_path(path) as tmp:
+        # open3d picks the writer by the file name's suffix.
+        named = tmp.with_name(tmp.name + f".{fmt.value}")
+        if not o3d.t.io.write_point_cloud(str(named), cloud):
+            raise LidarSlamError(f"{path}: open3d could not write the {fmt.value.upper()} file")
+        named.replace(tmp)
+
+
+def las_intensity(intensity: np.ndarray) -> np.ndarray:
+    """LAS intensity (uint16): values in 0..1 (KITTI-style reflectance) scaled to 0..65535,
+    others rounded and clipped to that range."""
+    scale = 65535.0 if len(intensity) and float(intensity.max()) <= 1.0 else 1.0
+    return np.clip(np.rint(intensity * scale), 0, 65535).astype(np.uint16)
+
+
+def require_laspy():
+    """The laspy module, or MissingDependency (one line: what to install)."""
+    try:
+        import laspy
+    except ImportError:
+        raise MissingDependency(LASPY_HINT) from None
+    return laspy
+
+
+def _write_las(path: Path, mp: MapPoints, compressed: bool) -> None:
+    laspy = require_laspy()
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.add_extra_dim(laspy.ExtraBytesParams(name="keyframe", type=np.uint32,
+                                                description="lidar-slam keyframe id"))
+    header.scales = np.array([0.001, 0.001, 0.001])  # mm
+    header.offsets = np.floor(mp.points.min(axis=0)) if len(mp.points) else np.zeros(3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = mp.points[:, 0], mp.points[:, 1], mp.points[:, 2]
+    las.intensity = las_intensity(mp.intensity)
+    las.keyframe = mp.keyframe
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        # A stream, not a name: given a name laspy decides compression by its suffix.
+        if not compressed:
+            las.write(fh, do_compress=False)
+            return
+        try:
+            las.write(fh, do_compress=True, laz_backend=laspy.LazBackend.Lazrs)
+        except laspy.errors.LaspyException as exc:
+            raise MissingDependency(f"{LASPY_HINT} ({exc})") from None

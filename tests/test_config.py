@@ -1,0 +1,68 @@
+"""Config: every shipped overlay loads, and out-of-range values are refused with one line."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lidar_slam.config import load_config
+from lidar_slam.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_configs_load(path):
+    load_config(path)
+
+
+@pytest.mark.parametrize("overlay,where", [
+    ({"odometry": {"voxel_size_m": -1}}, "odometry.voxel_size_m"),
+    ({"odometry": {"voxel_size_m": 0}}, "odometry.voxel_size_m"),
+    ({"data": {"max_range_m": -5}}, "data.max_range_m"),
+    ({"data": {"min_range_m": -1}}, "data.min_range_m"),
+    ({"data": {"min_range_m": 50, "max_range_m": 40}}, "must exceed min_range_m"),
+    ({"keyframes": {"distance_m": 0}}, "keyframes.distance_m"),
+    ({"keyframes": {"cloud_voxel_m": -0.5}}, "keyframes.cloud_voxel_m"),
+    ({"map": {"voxel_size_m": 0}}, "map.voxel_size_m"),
+    ({"loop": {"scan_context": {"max_radius_m": -80}}}, "loop.scan_context.max_radius_m"),
+    ({"loop": {"scan_context": {"rings": 0}}}, "loop.scan_context.rings"),
+    ({"loop": {"verify": {"voxel_m": 0}}}, "loop.verify.voxel_m"),
+    ({"loop": {"verify": {"min_fitness": 1.5}}}, "loop.verify.min_fitness"),
+    ({"backend": {"odom_trans_sigma_m": 0}}, "backend.odom_trans_sigma_m"),
+    ({"checkpoint": {"every_keyframes": -1}}, "checkpoint.every_keyframes"),
+])
+def test_out_of_range_values_are_refused(overlay, where):
+    with pytest.raises(ConfigError, match=where.replace(".", r"\.")):
+        load_config(None, overlay)
+
+
+def test_zero_where_zero_means_off_is_accepted():
+    load_config(None, {"data": {"min_range_m": 0}, "checkpoint": {"every_keyframes": 0},
+                       "loop": {"verify": {"probe_shift_m": 0}}})
+
+
+def test_negative_voxel_size_is_one_line_and_exit_2(tmp_path):
+    """A run with voxel_size_m: -1 used to run (and find 3 loops instead of 5)."""
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("odometry:\n  voxel_size_m: -1\n")
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run",
+                           str(REPO / "sample_scans"), "--out", str(tmp_path / "o"),
+                           "--config", str(cfg)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "odometry.voxel_size_m" in lines[0] and "-1" in lines[0], lines
+    assert not (tmp_path / "o").exists()
+
+
+def test_default_yaml_lists_the_models_defaults():
+    """configs/default.yaml is what the config models give without an overlay (regenerate it
+    with dump_config(SlamConfig(), ...) when a key changes)."""
+    import yaml
+
+    from lidar_slam.config import SlamConfig
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
+    assert yaml.safe_load(path.read_text()) == SlamConfig().model_dump()

@@ -1,0 +1,188 @@
+"""`lidar-slam localize` in a saved map (the session's small simulated map run, tests/conftest.py):
+the map layout, relocalisation without a pose, tracking, a jump in the data, a place the map does
+not cover, --initial-pose, speed against the odometry, and the CLI rules."""
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg, yaw_matrix
+from lidar_slam.io.trajectory import read_kitti_poses, read_tum
+
+
+def lidar_slam(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "lidar_slam.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def one_line_error(proc, *needles):
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.startswith("WARNING")]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def read_status(out: Path) -> list[dict]:
+    with open(out / "status.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def errors(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pose translation (m) and rotation (deg) differences."""
+    d = inverse(ref) @ est
+    return np.linalg.norm(d[:, :3, 3], axis=1), rotation_angle_deg(d)
+
+
+def gap_sequence(src: Path, out: Path, frames: list[int]) -> None:
+    """A KITTI-layout folder of the given frames of src (links), stamps kept: a jump."""
+    for sub in ("velodyne", "velodyne_times"):
+        (out / sub).mkdir(parents=True)
+        for k, i in enumerate(frames):
+            os.symlink(src / sub / f"{i:06d}.bin", out / sub / f"{k:06d}.bin")
+    stamps = np.loadtxt(src / "times.txt")[frames]
+    np.savetxt(out / "times.txt", stamps, fmt="%.6f")
+    shutil.copy(src / "calib.txt", out / "calib.txt")
+
+
+@pytest.fixture(scope="module")
+def tracked(sim_map, tmp_path_factory):
+    """Frames 100..139 of the map's own sequence localised without an initial pose."""
+    out = tmp_path_factory.mktemp("loc") / "out"
+    proc = lidar_slam("localize", sim_map.seq, "--map", sim_map.run, "--out", out,
+                      "--start", 100, "--n-scans", 40)
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+@pytest.mark.shared_data
+def test_map_layout_holds_final_keyframe_poses_in_the_map_frame(sim_map):
+    from lidar_slam.saved_map import open_map
+
+    manifest = json.loads((sim_map.run / "keyframes" / "manifest.json").read_text())
+    assert manifest["version"] == 3 and manifest["map"]["frame"] == "poses_kitti.txt"
+    m = open_map(sim_map.run)
+    try:
+        assert len(m) == manifest["keyframes"] == sim_map.run_summary["keyframes"]
+        poses = read_kitti_poses(sim_map.run / "poses_kitti.txt")
+        # A keyframe's frame sits exactly on its keyframe (frame 0 is moved to its stamp).
+        t, r = errors(m.T_map_kf[1:], poses[m.frame_index[1:]])
+        assert t.max() < 1e-6 and r.max() < 1e-6
+        ids, grids = m.descriptor_grids()
+        assert len(ids) == len(m) and manifest["map"]["descriptor_rows"] == len(m)
+        assert grids.shape[1:] == (m.cfg.loop.scan_context.rings, m.cfg.loop.scan_context.sectors)
+    finally:
+        m.close()
+
+
+@pytest.mark.shared_data
+def test_localize_without_initial_pose_matches_the_map_run(sim_map, tracked):
+    status = read_status(tracked)
+    assert [int(r["frame"]) for r in status] == list(range(100, 140))
+    assert status[0]["status"] == "localized"  # relocalised in the very first frame
+    assert {r["status"] for r in status} <= {"localized", "tracking"}
+    assert all(float(r["fitness"]) > 0.5 for r in status)
+    est = read_kitti_poses(tracked / "poses_kitti.txt")
+    stamps, tum = read_tum(tracked / "poses_tum.txt")
+    ref = read_kitti_poses(sim_map.run / "poses_kitti.txt")[100:140]
+    t, r = errors(est, ref)
+    assert t.max() < 0.10 and r.max() < 0.5, (t.max(), r.max())
+    np.testing.assert_allclose(tum[:, :3, 3], est[:, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(stamps, [float(r["stamp_s"]) for r in status], atol=1e-6)
+    summary = json.loads((tracked / "summary.json").read_text())
+    assert summary["frames"] == 40 and summary["frames_localized"] == 40
+    assert summary["frames_lost"] == 0 and summary["relocalisations"] == 1
+    assert summary["fps"] > 0
+
+
+@pytest.mark.shared_data
+def test_localization_is_no_slower_than_the_odometry(sim_map, tracked):
+    """Per frame, localising (deskew, tracking against the fixed map) costs no more than the
+    map run's odometry (deskew, kiss-icp with a growing map) on the same scans."""
+    summary = json.loads((tracked / "summary.json").read_text())
+    assert summary["localize_ms_per_frame"] <= sim_map.run_summary["odometry_ms_per_frame"], (
+        summary["localize_ms_per_frame"], sim_map.run_summary["odometry_ms_per_frame"])
+
+
+@pytest.mark.shared_data
+def test_a_jump_in_the_data_is_relocalised_within_5_frames(sim_map, tmp_path):
+    frames = list(range(40, 80)) + list(range(130, 170))  # 50 frames (~40 m) left out
+    gap_sequence(sim_map.seq, tmp_path / "gap", frames)
+    out = tmp_path / "out"
+    proc = lidar_slam("localize", tmp_path / "gap", "--map", sim_map.run, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    status = [r["status"] for r in read_status(out)]
+    assert set(status[:40]) <= {"localized", "tracking"}
+    after = status[40:46]
+    assert "localized" in after, status[38:50]
+    back = 40 + after.index("localized")
+    assert set(status[back:]) <= {"localized", "tracking"}, status[back:]
+    est = read_kitti_poses(out / "poses_kitti.txt")
+    t, _ = errors(est, read_kitti_poses(sim_map.run / "poses_kitti.txt")[frames])
+    tracking = np.array(status) == "tracking"
+    assert t[tracking].max() < 0.5, t[tracking].max()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["relocalisations"] == 2 and summary["frames"] == len(frames)
+
+
+@pytest.mark.shared_data
+def test_scans_of_another_place_stay_lost(sim_map, tmp_path, kitti_gt):
+    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+
+    kt = load_kitti_truth(kitti_gt, 0)  # another simulated sequence: another world
+    simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "s00", n_scans=20,
+                      Tr_cam_lidar=kt.Tr_cam_lidar)
+    out = tmp_path / "out"
+    proc = lidar_slam("localize", tmp_path / "s00", "--map", sim_map.run, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert [r["status"] for r in read_status(out)] == ["lost"] * 20
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_localized"] == 0 and summary["relocalisations"] == 0
+    assert summary["relocalisation_attempts"] == 20
+    assert len(read_kitti_poses(out / "poses_kitti.txt")) == 20  # one line per input frame
+
+
+@pytest.mark.shared_data
+def test_initial_pose_starts_tracking_at_once(sim_map, tmp_path):
+    ref = read_kitti_poses(sim_map.run / "poses_kitti.txt")
+    # The user's guess: 0.7 m and 4 deg off the true pose of frame 100.
+    guess = ref[100] @ make_pose(np.eye(3), [0.5, -0.5, 0.0]) @ yaw_matrix(np.radians(4.0))
+    yaw = np.degrees(np.arctan2(guess[1, 0], guess[0, 0]))
+    pose = ",".join(f"{v:.4f}" for v in (*guess[:3, 3], yaw))
+    out = tmp_path / "out"
+    proc = lidar_slam("localize", sim_map.seq, "--map", sim_map.run, "--out", out,
+                      "--start", 100, "--n-scans", 5, "--initial-pose", pose)
+    assert proc.returncode == 0, proc.stderr
+    assert [r["status"] for r in read_status(out)] == ["localized"] + ["tracking"] * 4
+    t, r = errors(read_kitti_poses(out / "poses_kitti.txt"), ref[100:105])
+    assert t.max() < 0.10 and r.max() < 0.5, (t, r)
+
+
+@pytest.mark.shared_data
+def test_localize_cli_rules(sim_map, tmp_path):
+    one_line_error(lidar_slam("localize", sim_map.seq, "--map", sim_map.run, "--out",
+                              tmp_path / "o", "--initial-pose", "1,2,3"), "--initial-pose")
+    one_line_error(lidar_slam("localize", sim_map.seq, "--map", tmp_path / "nomap", "--out",
+                              tmp_path / "o"), "nomap")
+    # A run that did not finish (no "map" in its manifest) is not a map.
+    half = tmp_path / "half"
+    shutil.copytree(sim_map.run / "keyframes", half / "keyframes")
+    shutil.copy(sim_map.run / "config.yaml", half / "config.yaml")
+    manifest = json.loads((half / "keyframes" / "manifest.json").read_text())
+    del manifest["map"]
+    (half / "keyframes" / "manifest.json").write_text(json.dumps(manifest))
+    one_line_error(lidar_slam("localize", sim_map.seq, "--map", half, "--out", tmp_path / "o"),
+                   "did not finish")
+    # The --out rule: a folder that holds files is refused without --overwrite.
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "notes.txt").write_text("mine")
+    one_line_error(lidar_slam("localize", sim_map.seq, "--map", sim_map.run, "--out",
+                              tmp_path / "full", "--n-scans", 2), "--overwrite")
+    assert not (tmp_path / "o").exists()
