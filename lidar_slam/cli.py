@@ -15,8 +15,12 @@ from enum import Enum
 from pathlib import Path
 from typing import Optional
 
-import click
 import typer
+
+try:  # typer >= 0.2x ships its own copy of click and raises that copy's exceptions
+    from typer import _click as click
+except ImportError:  # older typer runs on the click package
+    import click
 
 from lidar_slam.errors import LidarSlamError
 
