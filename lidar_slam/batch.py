@@ -296,30 +296,45 @@ def run_batch(jobs: list[BatchJob], out_dir: Path, fleet, interval_s: float,
     t0 = t_up = time.perf_counter()
     results: dict[int, SequenceResult] = {}
     interrupted = False
+
+    def write() -> tuple[list[SequenceResult], list[dict], float]:
+        t1 = time.perf_counter()
+        ordered = [results.get(i) or error_row(j.name, INTERRUPTED) for i, j in enumerate(jobs)]
+        # TOTAL frames/s counts from the moment Ray is up: its start-up (seconds, the same for
+        # any number of sequences) is in results.json as ray_start_s.
+        notes = [f"{len(jobs)} sequences in {t1 - t0:.1f} s, {t_up - t0:.1f} s of it starting "
+                 f"or joining Ray (not in TOTAL fps)" + ("; interrupted" if interrupted else "")]
+        rows = write_results(out_dir, ordered, t1 - t_up,
+                             {**(meta or {}), "wall_s_total": t1 - t0, "ray_start_s": t_up - t0},
+                             notes)
+        return ordered, rows, t1 - t0
+
+    written = None
     try:
         with fleet:
             t_up = time.perf_counter()
             out_dir.mkdir(parents=True, exist_ok=True)  # once Ray is up: no empty DIR left
             progress.restart_clock()
-            for outcome in fleet.map(run_job, jobs, on_wait=progress.waiting):
-                res = outcome.value if outcome.error is None else error_row(
-                    jobs[outcome.index].name, outcome.error)
-                results[outcome.index] = res
-                _check_same_code(res)
-                progress.finished(outcome.index, res.ok, _describe(res),
-                                  res.details.get("frames_computed", 0))
-    except KeyboardInterrupt:
+            try:
+                for outcome in fleet.map(run_job, jobs, on_wait=progress.waiting):
+                    res = outcome.value if outcome.error is None else error_row(
+                        jobs[outcome.index].name, outcome.error)
+                    results[outcome.index] = res
+                    _check_same_code(res)
+                    progress.finished(outcome.index, res.ok, _describe(res),
+                                      res.details.get("frames_computed", 0))
+            except KeyboardInterrupt:
+                interrupted = True
+                for i, job in enumerate(jobs):  # runs that ended while their result was on its way
+                    if i not in results:
+                        results[i] = _read_back(job, progress.t0_wall)
+            written = write()  # before Ray stops: stopping it may take a while, or fail
+    except KeyboardInterrupt:  # while Ray started or stopped
         interrupted = True
-        for i, job in enumerate(jobs):  # runs that ended while their result was on its way
+    if written is None:
+        for i, job in enumerate(jobs):
             if i not in results:
                 results[i] = _read_back(job, progress.t0_wall)
-    t1 = time.perf_counter()
-    ordered = [results.get(i) or error_row(j.name, INTERRUPTED) for i, j in enumerate(jobs)]
-    # TOTAL frames/s counts from the moment Ray is up: its start-up (seconds, the same for any
-    # number of sequences) is in results.json as ray_start_s.
-    notes = [f"{len(jobs)} sequences in {t1 - t0:.1f} s, {t_up - t0:.1f} s of it starting or "
-             f"joining Ray (not in TOTAL fps)" + ("; interrupted" if interrupted else "")]
-    rows = write_results(out_dir, ordered, t1 - t_up,
-                         {**(meta or {}), "wall_s_total": t1 - t0, "ray_start_s": t_up - t0},
-                         notes)
-    return BatchReport(ordered, rows, t1 - t0, interrupted)
+        written = write()
+    ordered, rows, wall_s = written
+    return BatchReport(ordered, rows, wall_s, interrupted)

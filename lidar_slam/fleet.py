@@ -63,7 +63,7 @@ class JobOutcome:
 class Fleet:
     """`with Fleet(...) as fleet: for outcome in fleet.map(fn, jobs): ...` runs fn(job) for
     every job on Ray, outcomes in the order they finish. Leaving the block early (Ctrl-C, an
-    error) cancels the jobs still queued or running."""
+    error) stops the jobs still queued or running, with Ray (see __exit__)."""
 
     def __init__(self, address: str | None = None, workers: int | None = None,
                  cpus_per_job: int = 1):
@@ -98,8 +98,8 @@ class Fleet:
             kwargs["address"] = self.address
             kwargs.pop("include_dashboard")
         # Ray's daemons start in this process group: with SIGINT blocked while they start (a
-        # mask they inherit), Ctrl-C in a terminal reaches this process only, which cancels the
-        # jobs and stops Ray in order.
+        # mask they inherit), Ctrl-C in a terminal reaches this process only, which writes the
+        # results and then stops Ray in order.
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             ray.init(**kwargs)
@@ -120,13 +120,12 @@ class Fleet:
         return self
 
     def __exit__(self, *exc) -> None:
+        """Stop Ray (embedded) or leave the cluster: either way Ray ends this job's tasks still
+        queued or running. No ray.cancel first: in Ray 2.60 a task whose reply arrives after a
+        forced cancel aborts the whole driver ("Tried to complete task that was not pending"),
+        which lost the results table of an interrupted batch."""
         import ray
 
-        for ref in list(self._pending):
-            try:
-                ray.cancel(ref, force=True)
-            except Exception as err:  # noqa: BLE001 - a job that ended meanwhile: nothing to do
-                log.debug("cancel: %s", err)
         self._pending = {}
         if self._started_here:
             ray.shutdown()
