@@ -159,7 +159,9 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
             pipe.backend.restore_live(a["backend_live"])
         else:  # a checkpoint from before the windowed back-end: re-solve the newest window
             pipe.backend.update()
-        pipe.loops.reindex(min(upto, len(r.store) - 1))
+        upto = min(upto, len(r.store) - 1)
+        applied = [c for c in loops if c.query <= upto]
+        pipe.loops.reindex(upto, max(applied, key=lambda c: c.query) if applied else None)
         for kf_id in range(max(upto + 1, 0), len(r.store)):
             pipe.loops.submit(kf_id)
     return meta["frames"]

@@ -96,8 +96,11 @@ class Backend:
 
     def update(self, force: bool = True) -> None:
         """Correct the live estimate for the loops added since the last update (a chain of
-        odometry edges needs no solving; force is kept for callers that want it explicit)."""
+        odometry edges needs no solving); unless forced, only at every
+        cfg.update_every_keyframes-th keyframe (by id: the same keyframes in every run)."""
         if not self._loops_pending or self._n == 0:
+            return
+        if not force and (self._n - 1) % self.cfg.update_every_keyframes:
             return
         t0 = time.perf_counter()
         self._solve_window()
@@ -138,7 +141,8 @@ class Backend:
         return {k: self._live[k].copy() for k in range(self._n)}
 
     def state(self) -> np.ndarray:
-        """The live estimate (n, 4, 4), for a checkpoint."""
+        """The live estimate (n, 4, 4) with every loop added so far in it, for a checkpoint."""
+        self.update()
         return self._live[:self._n].copy()
 
     def restore_live(self, live: np.ndarray) -> None:

@@ -60,8 +60,8 @@ def _timed_process(kf_id: int):
     return _DETECTOR.process(kf_id), time.perf_counter() - t0
 
 
-def _reindex(upto: int) -> None:
-    _DETECTOR.reindex(upto)
+def _reindex(upto: int, last_loop) -> None:
+    _DETECTOR.reindex(upto, last_loop)
 
 
 # -- the pipeline's side -------------------------------------------------------------------------
@@ -116,12 +116,13 @@ class LoopWorker:
             job.set_result(self._local(kf_id))
         self._pending.append((kf_id, job))
 
-    def reindex(self, upto: int) -> None:
-        """Index keyframes 0..upto from the store (resuming a run), before any submit()."""
+    def reindex(self, upto: int, last_loop=None) -> None:
+        """Index keyframes 0..upto from the store (resuming a run), before any submit();
+        last_loop: the newest LoopConstraint accepted for a keyframe <= upto (to follow)."""
         if self.mode == "process":
-            self._pool.submit(_reindex, upto).result()
+            self._pool.submit(_reindex, upto, last_loop).result()
         else:
-            self.detector.reindex(upto)
+            self.detector.reindex(upto, last_loop)
 
     def collect(self, upto: int) -> list:
         """Results (LoopResult) of every submitted keyframe with id <= upto, in keyframe order,
