@@ -150,8 +150,8 @@ class LoopDetector:
             candidates = self.index.query(kf.id, query_pts, self.path_m(kf.id),
                                           self.store.stamp_s(kf.id)).candidates
         radius = self.cfg.loop.verify.submap_radius
+        query_cloud = self.submap(kf.id, radius, kf.id) if candidates else None
         for cand in candidates[: self.cfg.loop.max_verify]:
-            query_cloud = self.submap(kf.id, radius, kf.id)
             res = verify(cand, query_cloud, self.submap(cand.match, radius, kf.id),
                          self.cfg.loop.verify)
             records.append(LoopRecord(kf.frame_index, self.store.frame_index(cand.match),
