@@ -299,6 +299,10 @@ def run_batch(jobs: list[BatchJob], out_dir: Path, fleet, interval_s: float,
 
     def write() -> tuple[list[SequenceResult], list[dict], float]:
         t1 = time.perf_counter()
+        if interrupted:  # runs that ended while their result was on its way
+            for i, job in enumerate(jobs):
+                if i not in results:
+                    results[i] = _read_back(job, progress.t0_wall)
         ordered = [results.get(i) or error_row(j.name, INTERRUPTED) for i, j in enumerate(jobs)]
         # TOTAL frames/s counts from the moment Ray is up: its start-up (seconds, the same for
         # any number of sequences) is in results.json as ray_start_s.
@@ -325,16 +329,10 @@ def run_batch(jobs: list[BatchJob], out_dir: Path, fleet, interval_s: float,
                                       res.details.get("frames_computed", 0))
             except KeyboardInterrupt:
                 interrupted = True
-                for i, job in enumerate(jobs):  # runs that ended while their result was on its way
-                    if i not in results:
-                        results[i] = _read_back(job, progress.t0_wall)
             written = write()  # before Ray stops: stopping it may take a while, or fail
     except KeyboardInterrupt:  # while Ray started or stopped
         interrupted = True
     if written is None:
-        for i, job in enumerate(jobs):
-            if i not in results:
-                results[i] = _read_back(job, progress.t0_wall)
         written = write()
     ordered, rows, wall_s = written
     return BatchReport(ordered, rows, wall_s, interrupted)

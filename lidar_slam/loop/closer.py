@@ -94,12 +94,6 @@ class LoopDetector:
                                           kf.points.astype(np.float64)))
         return np.concatenate(parts)
 
-    def _eligible(self, kf_id: int, match: int) -> bool:
-        """Whether keyframe `match` is old enough to be a loop of kf_id (the index's rule)."""
-        sc = self.cfg.loop.scan_context
-        return (self.path_m(kf_id) - self.path_m(match) >= sc.exclude_recent_m
-                or self.store.stamp_s(kf_id) - self.store.stamp_s(match) >= sc.exclude_recent_s)
-
     def follow(self, kf) -> tuple[LoopRecord, LoopConstraint | None] | None:
         """Try the loop that the newest accepted loop predicts for keyframe kf (if it is at most
         loop.follow_keyframes past that loop's query): the query's pose is that loop's
@@ -112,8 +106,9 @@ class LoopDetector:
         T_w_pred = T_wm @ last.T_match_query @ relative(self.store.T_world_kf_odom(last.query),
                                                           kf.T_world_kf_odom)
         window = range(max(0, last.match - 2 * n), min(kf.id - 1, last.match + 2 * n) + 1)
+        path_m, stamp_s = self.path_m(kf.id), self.store.stamp_s(kf.id)
         near = [(float(np.linalg.norm(self.store.T_world_kf_odom(j)[:3, 3] - T_w_pred[:3, 3])), j)
-                for j in window if self._eligible(kf.id, j) and len(self.store.get(j).points)]
+                for j in window if self.index.is_eligible(j, path_m, stamp_s)]
         if not near:
             return None
         match = min(near)[1]

@@ -236,6 +236,12 @@ class ScanContextIndex:
         n_time = int(np.searchsorted(when[:, 1], stamp_s - self.cfg.exclude_recent_s, "right"))
         return max(n_path, n_time)
 
+    def is_eligible(self, kf_id: int, path_m: float, stamp_s: float = np.nan) -> bool:
+        """Whether keyframe kf_id is a loop candidate for a keyframe at this path length and
+        stamp (n_eligible's rule); False for a keyframe that is not indexed (no points)."""
+        pos = self._pos.get(kf_id)
+        return pos is not None and pos < self.n_eligible(path_m, stamp_s)
+
     def query(self, kf_id: int, points_kf: np.ndarray, path_m: float,
               stamp_s: float = np.nan) -> QueryResult:
         """Loop candidates for keyframe kf_id among the eligible older keyframes."""
