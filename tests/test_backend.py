@@ -483,6 +483,44 @@ def test_backend_gnc_beats_plain_least_squares_on_many_wrong_loops():
     assert _max_position_error_m(graph.estimate, truth) < 0.3
 
 
+def _mostly_wrong_loops(n_wrong: int) -> tuple[PoseGraph, np.ndarray]:
+    """The square with its 3 true loops and n_wrong random wrong ones (its own wrong one too)."""
+    rng = np.random.default_rng(5)
+    graph, truth = _graph_with_wrong_loop(robust_k=None)
+    info = sigmas_to_information(LOOP_ROT_DEG, LOOP_TRANS_M)
+    while sum(e.is_loop for e in graph.edges) < 3 + n_wrong:
+        i, j = sorted(int(v) for v in rng.choice(60, 2, replace=False))
+        if j - i > 1:
+            graph.add_loop(i, j, make_pose(Rotation.random(random_state=rng).as_matrix(),
+                                           rng.uniform(-10, 10, 3)), info)
+    return graph, truth
+
+
+def test_backend_gnc_keeps_the_true_loops_among_mostly_wrong_ones():
+    """30 wrong loops against 3 true ones (91 % outliers, as loose gates admit on a drive with
+    one revisit): GNC starts from the odometry alone (loops at weight 0), so the true loops are
+    the ones with small residuals from the first step; started with every loop at weight 1 it
+    rejected all of them."""
+    graph, truth = _mostly_wrong_loops(30)
+    poses = graph.solve("gnc", "file")
+    inlier = dict(zip([(e.i, e.j) for e in graph.edges], graph.summary.inlier, strict=True))
+    true_loops = [(0, 59), (1, 58), (15, 45)]
+    assert all(inlier[p] for p in true_loops)
+    assert not any(v for p, v in inlier.items() if p not in true_loops and p[1] - p[0] > 1)
+    assert _max_position_error_m(poses, truth) < 0.3
+
+
+def test_backend_gnc_keeps_loops_that_already_agree_with_the_start():
+    """gtsam's degenerate case: every factor within its threshold at the start; GNC returns its
+    first solve, so that solve must include the loops (they are kept, not left at weight 0)."""
+    graph, truth = _graph_with_wrong_loop(robust_k=None)
+    graph.edges = [e for e in graph.edges if (e.i, e.j) != (22, 52)]
+    graph.solve("none", "file")  # the start is now the optimum: all residuals small
+    poses = graph.solve("gnc", "file")
+    assert all(graph.summary.inlier)
+    assert _max_position_error_m(poses, truth) < 0.3
+
+
 def copy_graph(graph: PoseGraph) -> PoseGraph:
     out = PoseGraph(graph.dims)
     out.priors, out.edges = list(graph.priors), list(graph.edges)
