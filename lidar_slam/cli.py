@@ -630,7 +630,8 @@ def optimize(
     huber_k: float = typer.Option(1.345, "--huber-k", help="Huber threshold (whitened)."),
     init: Init = typer.Option(Init.auto, "--init",
                               help="Start: the file's poses, a global initialisation (chordal in "
-                                   "3D, LAGO in 2D), or auto: both, the lower final error kept."),
+                                   "3D, LAGO in 2D), or auto: both, the lower final error kept "
+                                   "(with --robust gnc: the odometry chain)."),
     certify: Certify = typer.Option(Certify.auto, "--certify",
                                     help="Shonan rotation certificate (auto: graphs up to "
                                          "6000 nodes)."),

@@ -42,7 +42,7 @@ class RunResult:
     adaptive: dict = field(default_factory=dict)  # the config's "auto" settings as fixed
     # (match kf, query kf) -> "inlier" / "rejected": what the final solve made of each loop
     loop_backend: dict = field(default_factory=dict)
-    backend_init: str = ""  # the start the final solve kept (live / chordal)
+    backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
 
     def final_poses(self) -> np.ndarray:
         """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""

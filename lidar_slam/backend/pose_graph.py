@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -190,8 +191,18 @@ class PoseGraph:
 
         results: dict[str, gtsam_graph.SolveResult | None] = {}
         init_seconds = 0.0
-        guess = None if init == "file" else self._global_guess(edges, init == "chordal", given)
-        if guess is None:
+        odometry = (robust == "gnc" and init == "auto" and problem.known_span)
+        guess = (None if init == "file" or odometry else
+                 self._global_guess(edges, init == "chordal", given))
+        if odometry:
+            # GNC's first solve is the known inliers alone (Problem.gnc), and every later solve
+            # restarts from the start given to it: a start bent by wrong loops (the live
+            # estimate of a run that admitted them, or a chordal initialisation that averaged
+            # them in) leaves LM in a bent minimum even on the true loops (loose-gated
+            # simulated s00: ATE 57.7 m with 42 true loops kept; from the odometry 0.180 m).
+            # So GNC starts from the odometry: the known edges chained from the prior.
+            results["odometry"] = run(self._known_chain(edges, known), max_iterations)
+        elif guess is None:
             results[given] = run(self._estimate, max_iterations)
         else:
             init_seconds = guess.seconds
@@ -245,6 +256,26 @@ class PoseGraph:
                  len(res.poses), len(self.edges), robust, name, initial_error, res.final_error,
                  self.summary.seconds)
         return self.estimate
+
+    def _known_chain(self, edges: list[BetweenFactor], known: np.ndarray
+                     ) -> dict[int, np.ndarray]:
+        """Poses from the priors chained along the known-inlier edges (breadth first, in key
+        order): the solution of the known edges alone where they form a tree. Nodes they do not
+        reach keep the current estimate."""
+        links: dict[int, list[tuple[int, np.ndarray]]] = {}
+        for e, is_known in zip(edges, known, strict=True):
+            if is_known:
+                links.setdefault(e.i, []).append((e.j, e.T_i_j))
+                links.setdefault(e.j, []).append((e.i, np.linalg.inv(e.T_i_j)))
+        poses = {p.key: p.T_world_node for p in self.priors}
+        queue = deque(sorted(poses))
+        while queue:
+            i = queue.popleft()
+            for j, T_i_j in sorted(links.get(i, []), key=lambda t: t[0]):
+                if j not in poses:
+                    poses[j] = poses[i] @ T_i_j
+                    queue.append(j)
+        return {k: poses.get(k, T) for k, T in self._estimate.items()}
 
     def error(self, poses: dict[int, np.ndarray] | None = None) -> float:
         """gtsam graph error (0.5 * sum of whitened squares, Huber on robust edges) at the poses."""

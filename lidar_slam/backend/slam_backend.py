@@ -53,7 +53,7 @@ class Backend:
         # (match, query) keyframe ids -> "inlier" / "rejected", set by finish()
         self.loop_status: dict[tuple[int, int], str] = {}
         self.seconds = {"update": 0.0, "final": 0.0}  # live (window) updates, final solve
-        self.final_init = ""  # the start the final solve kept: live / chordal
+        self.final_init = ""  # the start the final solve kept: live / chordal (GNC: odometry)
 
     def __len__(self) -> int:
         return self._n
@@ -155,7 +155,8 @@ class Backend:
     def finish(self) -> dict[int, np.ndarray]:
         """Final poses: a full solve of the complete graph (cfg.robust on the loops) from the
         live estimate and, with cfg.global_init, from a chordal initialisation, the lower final
-        error kept (the graph's estimate is replaced by the result). LM stops at a 1e-9 relative
+        error kept (the graph's estimate is replaced by the result); GNC starts from the odometry
+        (PoseGraph.solve). LM stops at a 1e-9 relative
         error decrease, so the answer does not depend on where it started."""
         if self._n == 0:
             return {}
