@@ -27,7 +27,7 @@ from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.trajectory import read_kitti_poses
 from lidar_slam.loop.ground import level_ground
 from lidar_slam.loop.scan_context import align, describe, shift_to_yaw
-from lidar_slam.loop.verify import information_matrix, verify
+from lidar_slam.loop.verify import information_matrix, match_side, query_side, verify
 from lidar_slam.types import LoopCandidate
 
 TRUE_PAIRS = [(175, 108), (172, 109), (168, 113), (176, 114)]  # 2.2-4.1 m apart
@@ -284,6 +284,23 @@ def test_verification_is_repeatable_bit_for_bit(data):
     assert (a.fitness, a.rmse_m, a.margin) == (b.fitness, b.rmse_m, b.margin)
     for ha, hb in zip(a.hypotheses, b.hypotheses, strict=True):
         np.testing.assert_array_equal(ha.T_match_query, hb.T_match_query)
+
+
+@pytest.mark.shared_data
+def test_prepared_sides_give_the_same_verification(data):
+    """The loop detector builds a query's clouds once for all its candidates and keeps recent
+    match submaps' clouds: the result must be that of verify() on the points, bit for bit,
+    including when one match side serves two queries."""
+    cfg = VerifyConfig()
+    match = TRUE_PAIRS[0][1]
+    shared = match_side(data.submap(match), cfg)
+    for query in (TRUE_PAIRS[0][0], TRUE_PAIRS[1][0]):  # two queries, one match side
+        cand = sc_candidate(data, query, match)
+        plain = verify(cand, data.cloud(query), data.submap(match), cfg)
+        built = verify(cand, query_side(data.cloud(query), cfg), shared, cfg)
+        np.testing.assert_array_equal(plain.T_match_query, built.T_match_query)
+        assert (plain.accepted, plain.fitness, plain.rmse_m, plain.margin) == \
+            (built.accepted, built.fitness, built.rmse_m, built.margin)
 
 
 def test_a_run_with_loops_never_imports_open3d(tmp_path):

@@ -13,11 +13,14 @@ import numpy as np
 from lidar_slam.config import SlamConfig
 from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
-from lidar_slam.loop.verify import verify, verify_followed
+from lidar_slam.loop.verify import Side, match_side, query_side, verify, verify_followed
 from lidar_slam.keyframes import KeyframeStore
 from lidar_slam.types import LoopConstraint
 
 log = logging.getLogger(__name__)
+
+# Match submaps whose verification clouds are kept (about 1 MB each).
+MATCH_SIDES_KEPT = 16
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,7 @@ class LoopDetector:
         self.index = ScanContextIndex(cfg.loop.scan_context, store.root / "descriptors.bin")
         self._path_m = [0.0]  # odometry path travelled up to each keyframe (metres)
         self.last_loop: LoopConstraint | None = None  # the newest accepted loop (to follow)
+        self._sides: dict[tuple[int, int], Side] = {}  # match submaps' clouds, oldest first
 
     def path_m(self, kf_id: int) -> float:
         """Odometry path length from keyframe 0 to kf_id (keyframe to keyframe, metres)."""
@@ -93,6 +97,21 @@ class LoopDetector:
             parts.append(transform_points(relative(centre, kf.T_world_kf_odom),
                                           kf.points.astype(np.float64)))
         return np.concatenate(parts)
+
+    def _match_side(self, kf_id: int, upto: int) -> Side:
+        """Verification clouds of keyframe kf_id's submap (none after `upto`), built once for
+        the queries that match it in turn (a revisit matches the same few old keyframes from
+        several query keyframes: on simulated 00, 141 of 316 verifications found their match
+        among the last 32 used). Built from the same points, so the same result."""
+        radius = self.cfg.loop.verify.submap_radius
+        key = (kf_id, min(upto, kf_id + radius))
+        side = self._sides.pop(key, None)
+        if side is None:
+            side = match_side(self.submap(kf_id, radius, upto), self.cfg.loop.verify)
+        self._sides[key] = side  # newest last
+        while len(self._sides) > MATCH_SIDES_KEPT:
+            self._sides.pop(next(iter(self._sides)))
+        return side
 
     def follow(self, kf) -> tuple[LoopRecord, LoopConstraint | None] | None:
         """Try the loop that the newest accepted loop predicts for keyframe kf (if it is at most
@@ -144,11 +163,11 @@ class LoopDetector:
         if constraint is None:
             candidates = self.index.query(kf.id, query_pts, self.path_m(kf.id),
                                           self.store.stamp_s(kf.id)).candidates
-        radius = self.cfg.loop.verify.submap_radius
-        query_cloud = self.submap(kf.id, radius, kf.id) if candidates else None
+        vcfg = self.cfg.loop.verify
+        query = query_side(self.submap(kf.id, vcfg.submap_radius, kf.id), vcfg) if candidates \
+            else None
         for cand in candidates[: self.cfg.loop.max_verify]:
-            res = verify(cand, query_cloud, self.submap(cand.match, radius, kf.id),
-                         self.cfg.loop.verify)
+            res = verify(cand, query, self._match_side(cand.match, kf.id), vcfg)
             records.append(LoopRecord(kf.frame_index, self.store.frame_index(cand.match),
                                       kf.id, cand.match, cand.score,
                                       float(np.degrees(cand.yaw_guess_rad)), res.fitness,

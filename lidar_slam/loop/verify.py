@@ -208,24 +208,54 @@ def _distinct(T_a: np.ndarray, T_b: np.ndarray) -> bool:
     return bool(rotation_angle_deg(d) > _SAME_ROT_DEG or np.linalg.norm(d[:3, 3]) > _SAME_TRANS_M)
 
 
-def verify(candidate: LoopCandidate, query_points: np.ndarray, match_points: np.ndarray,
-           cfg: VerifyConfig, T_match_query_init: np.ndarray | None = None) -> VerificationResult:
-    """Verify a candidate; query_points in the query keyframe frame, match_points (a keyframe or a
-    small submap) in the match keyframe frame, metres. Without T_match_query_init the start is
-    the candidate's yaw guess about both clouds' ground normals (see scan_context's convention).
-    """
+@dataclass(frozen=True)
+class Side:
+    """One side of a verification, built once and reusable for every candidate it takes part
+    in (the query keyframe's against each of its candidates, a match keyframe's for several
+    queries): fine and coarse clouds, and the rotation levelling its ground (4x4)."""
+
+    fine: _Cloud
+    coarse: _Cloud
+    L_level: np.ndarray
+
+
+def query_side(points: np.ndarray, cfg: VerifyConfig) -> Side:
+    """The query's clouds (the ICP source: capped subsets) from its points (its frame, m)."""
     gicp = cfg.method == "gicp"
-    src = _cloud(query_points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
-    tgt = _cloud(match_points, cfg.voxel_m, True, gicp)  # normals for the information matrix
-    src_c = _cloud(query_points, cfg.coarse_voxel_m, False, gicp, cfg.coarse_max_points)
-    tgt_c = _cloud(tgt.points, cfg.coarse_voxel_m, not gicp, gicp)
+    fine = _cloud(points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
+    coarse = _cloud(points, cfg.coarse_voxel_m, False, gicp, cfg.coarse_max_points)
+    return Side(fine, coarse, _level(fine.points, cfg))
+
+
+def match_side(points: np.ndarray, cfg: VerifyConfig) -> Side:
+    """The match's clouds (the ICP target, with normals for the information matrix)."""
+    gicp = cfg.method == "gicp"
+    fine = _cloud(points, cfg.voxel_m, True, gicp)
+    coarse = _cloud(fine.points, cfg.coarse_voxel_m, not gicp, gicp)
+    return Side(fine, coarse, _level(fine.points, cfg))
+
+
+def _level(points: np.ndarray, cfg: VerifyConfig) -> np.ndarray:
+    if not cfg.level_to_ground:
+        return np.eye(4)
+    return make_pose(level_ground(points).R_level_sensor, np.zeros(3))
+
+
+def verify(candidate: LoopCandidate, query: np.ndarray | Side, match: np.ndarray | Side,
+           cfg: VerifyConfig, T_match_query_init: np.ndarray | None = None) -> VerificationResult:
+    """Verify a candidate; query: points in the query keyframe frame, match: points (a keyframe
+    or a small submap) in the match keyframe frame, metres, or either side already built by
+    query_side / match_side with the same cfg (same result). Without T_match_query_init the
+    start is the candidate's yaw guess about both clouds' ground normals (see scan_context's
+    convention).
+    """
+    q = query if isinstance(query, Side) else query_side(query, cfg)
+    m = match if isinstance(match, Side) else match_side(match, cfg)
+    src, src_c, L_q = q.fine, q.coarse, q.L_level
+    tgt, tgt_c, L_m = m.fine, m.coarse, m.L_level
     if min(len(src_c.points), len(tgt_c.points)) < 10:
         return VerificationResult(False, "too few points", 0.0, np.inf, candidate.yaw_guess_rad,
                                   np.nan, 0.0, None)
-    L_q = L_m = np.eye(4)
-    if cfg.level_to_ground:
-        L_q = make_pose(level_ground(src.points).R_level_sensor, np.zeros(3))
-        L_m = make_pose(level_ground(tgt.points).R_level_sensor, np.zeros(3))
     if T_match_query_init is None:
         T_match_query_init = inverse(L_m) @ yaw_matrix(candidate.yaw_guess_rad) @ L_q
 
