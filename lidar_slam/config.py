@@ -67,7 +67,9 @@ class ScanContextConfig(_Section):
     # "auto": 1.5 x the horizontal range within which 99 % of the first scan's points lie,
     # rounded up to 10 m, 20-80 m (an 80 m descriptor puts a whole room in 3-4 rings).
     max_radius_m: Positive | Auto = "auto"
-    sensor_height_m: Positive = 2.0
+    # Height of the sensor above the ground, for keyframes whose own ground fit fails ("auto":
+    # the ground fitted in the first scan, else 2 m).
+    sensor_height_m: Positive | Auto = "auto"
     candidates: Count = 10
     threshold: Positive = 0.3
     # A keyframe is not a loop candidate of a newer one until the sensor has travelled
@@ -155,9 +157,12 @@ class LoopConfig(_Section):
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs
-    # are deterministic.
+    # are deterministic. The worker process only gets the CPU time the odometry leaves and
+    # falls behind in dense revisits; a long lag lets it catch up later instead of the
+    # odometry waiting for it (the live estimate takes loops in that much later; the final
+    # poses come from the complete graph either way).
     worker: Literal["process", "thread", "inline"] = "process"
-    collect_lag_keyframes: NonNegativeInt = 10
+    collect_lag_keyframes: NonNegativeInt = 200
     # After an accepted loop, the next keyframes (up to this many past it; 0 = off) are first
     # tried against the old keyframe nearest to where that loop and the odometry put them:
     # one ICP from the predicted pose (verify.follow_max_correction_*), no descriptor. A revisit

@@ -10,8 +10,8 @@ same order, whatever the machine's load.
 A process by default (`loop.worker: process`): kiss-icp's registration and small_gicp's ICP both
 hold Python's GIL while they run, so a worker *thread* stalls the odometry for as long as each
 verification ICP takes. The worker process reads keyframes from the run folder's store (only
-ids cross the pipe), runs at a lower priority, and ignores Ctrl-C (the main process decides when
-to stop). "thread" and "inline" (in the main flow, for debugging) remain.
+ids cross the pipe), runs on the CPU time the odometry leaves (SCHED_IDLE), and ignores Ctrl-C
+(the main process decides when to stop). "thread" and "inline" (in the main flow, for debugging) remain.
 """
 
 from __future__ import annotations
@@ -31,14 +31,27 @@ from lidar_slam.keyframes import KeyframeReader, KeyframeStore
 NICENESS = 10
 
 
-def _lower_this_threads_priority() -> None:
-    """Run the calling thread at a lower priority (Linux: a thread has its own nice value), so
-    that the odometry gets the cores first; results are waited for at fixed keyframes, so this
-    changes timing, not results. (SCHED_IDLE was tried for the worker process: on sim 07 the
-    odometry then waited 2.7 instead of 0.9 ms per frame for loop results, and whole-run wall
-    time did not improve beyond this machine's +-6 % noise.)"""
+def _lower_this_threads_priority(idle: bool = False) -> None:
+    """Run the calling thread at a lower priority (Linux: a thread has its own policy and nice
+    value), so that the odometry gets the cores first; results are waited for at fixed
+    keyframes, so this changes timing, not results.
+
+    idle (the worker process): SCHED_IDLE, the CPU time the odometry leaves. kiss-icp keeps
+    about 1.65 of 2 cores busy; at nice 10 the worker still took time slices from its two
+    registration threads. Full simulated 00 (261 loops), one run each beside stock
+    kiss_icp_pipeline (302.2 s): nice 10 with results collected 10 keyframes later 307.4 s
+    (odometry 62.7 ms/frame); SCHED_IDLE with 50 keyframes 300.9 s (59.2 ms/frame, 3.4 ms/frame
+    waiting for the worker); SCHED_IDLE with 200 keyframes 296.0 s (59.8, 2.2). Not for a
+    worker thread: starved while it holds the GIL, it would stall the odometry."""
+    tid = threading.get_native_id()
+    if idle:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            return
+        except (AttributeError, OSError):  # not Linux, or not allowed: nice instead
+            pass
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICENESS)
+        os.setpriority(os.PRIO_PROCESS, tid, NICENESS)
     except (AttributeError, OSError):  # not Linux, or not allowed: same priority
         pass
 
@@ -53,7 +66,7 @@ def _start_process(cfg_json: dict, store_root: str) -> None:
     from lidar_slam.loop.closer import LoopDetector
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _lower_this_threads_priority()
+    _lower_this_threads_priority(idle=True)
     _DETECTOR = LoopDetector(SlamConfig(**cfg_json), KeyframeReader(store_root))
 
 
