@@ -137,8 +137,8 @@ def open_map(run_dir: str | Path, overlay: str | Path | None = None) -> SavedMap
     except (OSError, ValueError):
         auto = None
     reader = KeyframeReader(kf_dir)
-    if auto is None:
-        auto = adapt.auto_values(cfg, reader.get(0).points if n else None)
+    if auto is None or not adapt.covers(cfg, auto):  # (older runs fixed fewer of them)
+        auto = {**adapt.auto_values(cfg, reader.get(0).points if n else None), **(auto or {})}
     cfg = adapt.apply(cfg, auto)
     return SavedMap(root, cfg, T_map_kf, table["frame_index"].copy(), table["count"].copy(),
                     bool(n) and bool(table["has_intensity"].all()),

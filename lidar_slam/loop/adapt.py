@@ -8,7 +8,9 @@ sample 43 m), and sets:
 
 - descriptor radius = 1.5 x that range, rounded up to 10 m, within 20-80 m;
 - keyframe spacing = radius / 40 in 0.5 m steps, within 0.5-2 m;
-- recent keyframes skipped by loop search = 0.75 x radius of travelled path.
+- recent keyframes skipped by loop search = 0.75 x radius of travelled path;
+- the sensor height that descriptors fall back to where a keyframe's own ground fit fails =
+  the height of the ground fitted in the first scan (2 m if none: simulated HDL-64E 1.73 m).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import logging
 import numpy as np
 
 from lidar_slam.config import SlamConfig
+from lidar_slam.loop.ground import level_ground
+from lidar_slam.loop.scan_context import DEFAULT_SENSOR_HEIGHT_M
 
 log = logging.getLogger(__name__)
 OUTDOOR_FALLBACK_RANGE_M = 60.0  # a first scan with no point in range: assume outdoors
@@ -27,7 +31,7 @@ def auto_values(cfg: SlamConfig, points_sensor: np.ndarray | None) -> dict[str, 
     """The settings that are "auto" in cfg, from the first scan's points (sensor frame, m);
     the 99 % horizontal range is reported as range_p99_m."""
     sc, kf = cfg.loop.scan_context, cfg.keyframes
-    if "auto" not in (sc.max_radius_m, sc.exclude_recent_m, kf.distance_m):
+    if "auto" not in (sc.max_radius_m, sc.exclude_recent_m, sc.sensor_height_m, kf.distance_m):
         return {}
     p99 = OUTDOOR_FALLBACK_RANGE_M
     if points_sensor is not None and len(points_sensor):
@@ -43,7 +47,22 @@ def auto_values(cfg: SlamConfig, points_sensor: np.ndarray | None) -> dict[str, 
         out["distance_m"] = float(np.clip(np.round(radius / 40.0 * 2.0) / 2.0, 0.5, 2.0))
     if sc.exclude_recent_m == "auto":
         out["exclude_recent_m"] = 0.75 * radius
+    if sc.sensor_height_m == "auto":
+        height = None
+        if points_sensor is not None and len(points_sensor):
+            height = level_ground(points_sensor, max_tilt_deg=sc.max_tilt_deg).height_m
+        out["sensor_height_m"] = DEFAULT_SENSOR_HEIGHT_M if height is None else round(height, 2)
     return out
+
+
+def covers(cfg: SlamConfig, values: dict[str, float]) -> bool:
+    """True when values hold every setting that is "auto" in cfg."""
+    sc, kf = cfg.loop.scan_context, cfg.keyframes
+    wanted = [k for k, v in (("max_radius_m", sc.max_radius_m),
+                             ("exclude_recent_m", sc.exclude_recent_m),
+                             ("sensor_height_m", sc.sensor_height_m),
+                             ("distance_m", kf.distance_m)) if v == "auto"]
+    return all(k in values for k in wanted)
 
 
 def apply(cfg: SlamConfig, values: dict[str, float]) -> SlamConfig:
@@ -51,7 +70,8 @@ def apply(cfg: SlamConfig, values: dict[str, float]) -> SlamConfig:
     if not values:
         return cfg
     sc = cfg.loop.scan_context.model_copy(update={
-        k: values[k] for k in ("max_radius_m", "exclude_recent_m") if k in values})
+        k: values[k] for k in ("max_radius_m", "exclude_recent_m", "sensor_height_m")
+        if k in values})
     kf = cfg.keyframes.model_copy(update={
         k: values[k] for k in ("distance_m",) if k in values})
     loop = cfg.loop.model_copy(update={"scan_context": sc})
@@ -65,5 +85,7 @@ def describe(values: dict[str, float]) -> str:
         parts.append(f"keyframes every {values['distance_m']:.1f} m")
     if "exclude_recent_m" in values:
         parts.append(f"loops skip the last {values['exclude_recent_m']:.0f} m of path")
+    if "sensor_height_m" in values:
+        parts.append(f"sensor {values['sensor_height_m']:.2f} m above the ground")
     return (", ".join(parts) + f" (auto: 99 % of the first scan within "
             f"{values['range_p99_m']:.1f} m)")

@@ -45,11 +45,17 @@ class QueryResult:
     compared: int = 0
 
 
+# Sensor height above the ground where neither the cloud nor the config says (m).
+DEFAULT_SENSOR_HEIGHT_M = 2.0
+
+
 def describe(points_kf: np.ndarray, cfg: ScanContextConfig) -> Descriptor:
     """Scan context of a cloud given in its keyframe frame (N, 3) metres."""
     pts = np.asarray(points_kf, dtype=np.float64)
     R = np.eye(3)
-    height = cfg.sensor_height_m
+    # "auto" is fixed from the first scan by the pipeline (loop.adapt); used directly, 2 m.
+    height = (DEFAULT_SENSOR_HEIGHT_M if cfg.sensor_height_m == "auto"
+              else cfg.sensor_height_m)
     if cfg.level_to_ground and len(pts):
         ground = level_ground(pts, max_tilt_deg=cfg.max_tilt_deg)
         R = ground.R_level_sensor
