@@ -10,7 +10,7 @@ sample 43 m), and sets:
 - keyframe spacing = radius / 40 in 0.5 m steps, within 0.5-2 m;
 - recent keyframes skipped by loop search = 0.75 x radius of travelled path;
 - the sensor height that descriptors fall back to where a keyframe's own ground fit fails =
-  the height of the ground fitted in the first scan (2 m if none: simulated HDL-64E 1.73 m).
+  the height of the ground fitted in the first scan (2 m if none; simulated HDL-64E: 1.73 m).
 """
 
 from __future__ import annotations
