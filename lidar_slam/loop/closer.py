@@ -19,7 +19,8 @@ from lidar_slam.types import LoopConstraint
 
 log = logging.getLogger(__name__)
 
-# Match submaps whose verification clouds are kept (about 1 MB each).
+# Match submaps whose verification clouds are kept (about 1.8 MB each: sim 07's peak RSS is
+# 239 MB with 16 kept, 210 MB with none).
 MATCH_SIDES_KEPT = 16
 
 
