@@ -27,11 +27,23 @@ log = logging.getLogger(__name__)
 OUTDOOR_FALLBACK_RANGE_M = 60.0  # a first scan with no point in range: assume outdoors
 
 
+# The settings that can be "auto": scan-context ones, then keyframe ones.
+SCAN_CONTEXT_KEYS = ("max_radius_m", "exclude_recent_m", "sensor_height_m")
+KEYFRAME_KEYS = ("distance_m",)
+
+
+def _auto_keys(cfg: SlamConfig) -> list[str]:
+    """Names of the settings that are "auto" in cfg."""
+    sc, kf = cfg.loop.scan_context, cfg.keyframes
+    return ([k for k in SCAN_CONTEXT_KEYS if getattr(sc, k) == "auto"]
+            + [k for k in KEYFRAME_KEYS if getattr(kf, k) == "auto"])
+
+
 def auto_values(cfg: SlamConfig, points_sensor: np.ndarray | None) -> dict[str, float]:
     """The settings that are "auto" in cfg, from the first scan's points (sensor frame, m);
     the 99 % horizontal range is reported as range_p99_m."""
     sc, kf = cfg.loop.scan_context, cfg.keyframes
-    if "auto" not in (sc.max_radius_m, sc.exclude_recent_m, sc.sensor_height_m, kf.distance_m):
+    if not _auto_keys(cfg):
         return {}
     p99 = OUTDOOR_FALLBACK_RANGE_M
     if points_sensor is not None and len(points_sensor):
@@ -57,12 +69,7 @@ def auto_values(cfg: SlamConfig, points_sensor: np.ndarray | None) -> dict[str, 
 
 def covers(cfg: SlamConfig, values: dict[str, float]) -> bool:
     """True when values hold every setting that is "auto" in cfg."""
-    sc, kf = cfg.loop.scan_context, cfg.keyframes
-    wanted = [k for k, v in (("max_radius_m", sc.max_radius_m),
-                             ("exclude_recent_m", sc.exclude_recent_m),
-                             ("sensor_height_m", sc.sensor_height_m),
-                             ("distance_m", kf.distance_m)) if v == "auto"]
-    return all(k in values for k in wanted)
+    return all(k in values for k in _auto_keys(cfg))
 
 
 def apply(cfg: SlamConfig, values: dict[str, float]) -> SlamConfig:
@@ -70,10 +77,8 @@ def apply(cfg: SlamConfig, values: dict[str, float]) -> SlamConfig:
     if not values:
         return cfg
     sc = cfg.loop.scan_context.model_copy(update={
-        k: values[k] for k in ("max_radius_m", "exclude_recent_m", "sensor_height_m")
-        if k in values})
-    kf = cfg.keyframes.model_copy(update={
-        k: values[k] for k in ("distance_m",) if k in values})
+        k: values[k] for k in SCAN_CONTEXT_KEYS if k in values})
+    kf = cfg.keyframes.model_copy(update={k: values[k] for k in KEYFRAME_KEYS if k in values})
     loop = cfg.loop.model_copy(update={"scan_context": sc})
     return cfg.model_copy(update={"loop": loop, "keyframes": kf})
 
