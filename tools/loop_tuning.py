@@ -25,6 +25,17 @@ pipeline's (range <= map.max_range_m, keyframes.cloud_voxel_m voxels); query and
 submaps (LoopCloser: the keyframe and its predecessors / +-N neighbours, merged with GT poses).
 
 Prints wall and CPU milliseconds (CPU sums threads; on a shared machine it is the fairer number).
+
+python tools/loop_tuning.py gates RUN_DIR DATA [RUN_DIR DATA ...] [--threshold 0.4] [--json FILE]
+
+gates: the descriptor threshold and the verification margin, chosen on finished runs. Each run's
+keyframe store is replayed through the pipeline's own LoopDetector (same keyframes, descriptors,
+submaps and verification as the run), at a loose descriptor threshold with the margin gate off and
+every candidate verified, each verified pose scored against DATA's ground truth (or reference
+poses: a gross-error gate of 1 m / 5 deg). Prints, per sequence, the margins of wrong poses that
+passed every other gate and of true ones, then for each (threshold, margin) pair the loops the
+pipeline would accept (first passing candidate of each keyframe, best descriptor first, at most
+loop.max_verify), how many of them are wrong, and the verifications it would run.
 """
 
 from __future__ import annotations
@@ -249,10 +260,119 @@ def cost(argv: list[str]) -> None:
               f"{'correct' if ok else 'WRONG'} ({err_m:.2f} m {err_deg:.1f} deg)  {v.reason}")
 
 
+def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
+    """Every candidate of every keyframe of a finished run below `threshold`, verified with the
+    margin gate off, as dicts (keyframe, rank, descriptor distance, gates, margin, correct)."""
+    import json
+    import shutil
+    import tempfile
+
+    from lidar_slam import metrics
+    from lidar_slam.config import SlamConfig
+    from lidar_slam.io.sources import open_source
+    from lidar_slam.keyframes import KeyframeReader
+    from lidar_slam.loop.closer import LoopDetector
+    from lidar_slam.loop.verify import query_side
+
+    raw = yaml.safe_load((run / "config.yaml").read_text())
+    auto = json.loads((run / "summary.json").read_text()).get("auto_settings", {})
+    sc = raw["loop"]["scan_context"]
+    for key in ("exclude_recent_m", "max_radius_m", "sensor_height_m"):
+        if sc.get(key) == "auto":
+            sc[key] = auto[key]
+    if raw["keyframes"]["distance_m"] == "auto":
+        raw["keyframes"]["distance_m"] = auto["distance_m"]
+    sc["threshold"] = threshold
+    raw["loop"]["verify"]["min_margin"] = 0.0
+    raw["loop"]["follow_keyframes"] = 0
+    cfg = SlamConfig(**raw)
+    gt = open_source(data).ground_truth
+    if gt is None:
+        sys.exit(f"{data}: no ground truth or reference poses to score loops against")
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp:  # the detector writes its descriptor file there
+        shutil.copytree(run / "keyframes", Path(tmp) / "kf")
+        det = LoopDetector(cfg, KeyframeReader(Path(tmp) / "kf"))
+        vcfg = cfg.loop.verify
+        k = 0
+        while True:
+            try:
+                kf = det.store.get(k)
+            except KeyError:
+                break
+            pts = kf.points.astype(np.float64)
+            if len(pts):
+                cands = det.index.query(k, pts, det.path_m(k), det.store.stamp_s(k)).candidates
+                query = query_side(det.submap(k, vcfg.submap_radius, k), vcfg) if cands else None
+                for rank, c in enumerate(cands[: cfg.loop.max_verify]):
+                    r = verify(c, query, det._match_side(c.match, k), vcfg)
+                    qf, mf = kf.frame_index, det.store.frame_index(c.match)
+                    score = metrics.loop_precision_recall(
+                        np.array([[qf, mf]]), r.T_match_query[None], gt, min_frame_gap=0)
+                    rows.append(dict(kf=k, rank=rank, distance=float(c.score),
+                                     passed=bool(r.accepted), margin=float(r.margin),
+                                     fitness=float(r.fitness), correct=bool(score.correct[0])))
+                det._index(k, pts)
+            k += 1
+    return rows
+
+
+def simulate_gates(rows: list[dict], threshold: float, margin: float) -> tuple[int, int, int]:
+    """(accepted, wrong, verified) if the pipeline ran with this threshold and margin."""
+    accepted = wrong = verified = 0
+    by_kf: dict[int, list[dict]] = {}
+    for r in rows:
+        by_kf.setdefault(r["kf"], []).append(r)
+    for cands in by_kf.values():
+        for r in sorted(cands, key=lambda r: r["rank"]):
+            if r["distance"] >= threshold:
+                break
+            verified += 1
+            if r["passed"] and r["margin"] >= margin:
+                accepted += 1
+                wrong += not r["correct"]
+                break
+    return accepted, wrong, verified
+
+
+def gates(argv: list[str]) -> None:
+    import json
+
+    ap = argparse.ArgumentParser(prog="loop_tuning.py gates")
+    ap.add_argument("pairs", nargs="+", help="RUN_DIR DATA pairs")
+    ap.add_argument("--threshold", type=float, default=0.4)
+    ap.add_argument("--json", default=None, help="write every replayed candidate here")
+    args = ap.parse_args(argv)
+    if len(args.pairs) % 2:
+        sys.exit("gates: give RUN_DIR DATA pairs")
+    runs = list(zip(args.pairs[::2], args.pairs[1::2]))
+    table = {}
+    for run, data in runs:
+        rows = replay_candidates(Path(run), data, args.threshold)
+        table[data] = rows
+        ok = [r for r in rows if r["passed"]]
+        print(f"{data}: {len(rows)} candidates verified; passing every gate but the margin: "
+              f"{len(ok)}; margins of the wrong ones "
+              f"{sorted(round(r['margin'], 3) for r in ok if not r['correct'])}, true ones below "
+              f"0.12 {sorted(round(r['margin'], 3) for r in ok if r['correct'] and r['margin'] < 0.12)}")
+    names = [Path(d).name for _, d in runs]
+    print("threshold margin  " + "  ".join(f"{n:>22}" for n in names) +
+          "   (loops accepted / wrong / verifications)")
+    for t in sorted({0.3, 0.33, 0.35, args.threshold}):
+        if t > args.threshold:
+            continue
+        for m in (0.12, 0.08, 0.06, 0.04, 0.02, 0.0):
+            cells = ["%6d / %3d / %5d" % simulate_gates(table[d], t, m) for _, d in runs]
+            print(f"{t:9.2f} {m:6.2f}  " + "  ".join(f"{c:>22}" for c in cells))
+    if args.json:
+        Path(args.json).write_text(json.dumps(table))
+
+
 def main() -> None:
-    if len(sys.argv) < 2 or sys.argv[1] not in ("sweep", "cost"):
-        sys.exit("usage: python tools/loop_tuning.py sweep|cost [args...] (see the docstring)")
-    (sweep if sys.argv[1] == "sweep" else cost)(sys.argv[2:])
+    commands = {"sweep": sweep, "cost": cost, "gates": gates}
+    if len(sys.argv) < 2 or sys.argv[1] not in commands:
+        sys.exit("usage: python tools/loop_tuning.py sweep|cost|gates [args...] (see the docstring)")
+    commands[sys.argv[1]](sys.argv[2:])
 
 
 if __name__ == "__main__":
