@@ -157,8 +157,10 @@ class BackendConfig(_Section):
 
 class LoopConfig(_Section):
     enabled: bool = True
-    # Candidates verified per keyframe query (best descriptor distance first).
-    max_verify: Count = 3
+    # Candidates verified per keyframe query (best descriptor distance first). 2: a third
+    # candidate closed no extra loop on sims 07 / s00 / s05 / s08, full 00 or the Ouster loop,
+    # and cost 15 % of the verifications (docs/benchmarks/2026-12-02-loop-gates.md).
+    max_verify: Count = 2
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs
