@@ -161,6 +161,12 @@ class LoopConfig(_Section):
     # candidate closed no extra loop on sims 07 / s00 / s05 / s08, full 00 or the Ouster loop,
     # and cost 15 % of the verifications (docs/benchmarks/2026-12-02-loop-gates.md).
     max_verify: Count = 2
+    # A candidate is verified only where the odometry could have put it: the odometry places
+    # the two keyframes at most max_gap_m + max_drift x (path travelled between them) apart.
+    # kiss-icp drifts ~1 % of the path; true loops on the sims were at most 12 m / 1.8 % apart,
+    # while 97-100 % of the wrong candidates were further (docs/design.md, "Loop thresholds").
+    max_gap_m: NonNegative = 20.0
+    max_drift: NonNegative = 0.1
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs

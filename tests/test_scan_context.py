@@ -142,3 +142,34 @@ def test_recent_means_little_path_and_little_time():
     assert index.n_eligible(path_m=12.5, stamp_s=5.0) == 3  # path 0, 1, 2 are 10 m back
     assert index.n_eligible(path_m=5.0, stamp_s=32.0) == 3  # stamps 0, 1, 2 are 30 s back
     assert index.n_eligible(path_m=5.0) == 0  # no stamp: path alone
+
+
+def test_a_candidate_is_verified_only_where_the_odometry_could_have_drifted_to(tmp_path):
+    """loop.max_gap_m + loop.max_drift x path between the keyframes: a square 50 m loop
+    (200 m of path) closes 4 m off; a keyframe 45 m away after 60 m of path cannot be the same
+    place (kiss-icp would have drifted 75 %)."""
+    from lidar_slam.config import SlamConfig
+    from lidar_slam.geometry import make_pose
+    from lidar_slam.keyframes import KeyframeStore
+    from lidar_slam.loop.closer import LoopDetector
+
+    store = KeyframeStore(tmp_path / "kf")
+    corners = [(0, 0), (50, 0), (50, 50), (0, 50), (0, 4)]
+    xy = [np.array(corners[0], float)]
+    for a, b in zip(corners, corners[1:]):
+        a, b = np.array(a, float), np.array(b, float)
+        n = int(np.ceil(np.linalg.norm(b - a) / 2.0))
+        xy += [a + (b - a) * (i / n) for i in range(1, n + 1)]
+    for k, p in enumerate(xy):
+        store.add(k, make_pose(np.eye(3), [p[0], p[1], 0.0]), np.zeros((1, 3)), None, 0.1 * k)
+    det = LoopDetector(SlamConfig(), store)
+    last = len(xy) - 1
+    assert det.plausible(last, 0)  # 4 m apart after 196 m: 20 + 19.6 m allowed
+    k45 = next(k for k, p in enumerate(xy) if p[1] >= 45)  # (50, 45): 95 m of path
+    assert not det.plausible(k45, 0)  # 67 m apart after 95 m: 29.5 m allowed
+    k_far = len(xy) - 3  # (0, 8), ~8 m from keyframe 0 by the odometry
+    assert det.plausible(k_far, 0)
+    strict = LoopDetector(SlamConfig(loop={"max_gap_m": 2.0, "max_drift": 0.0}), store)
+    assert not strict.plausible(last, 0)
+    det.index.close()
+    strict.index.close()

@@ -302,7 +302,9 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
                 break
             pts = kf.points.astype(np.float64)
             if len(pts):
-                cands = det.index.query(k, pts, det.path_m(k), det.store.stamp_s(k)).candidates
+                cands = [c for c in det.index.query(k, pts, det.path_m(k),
+                                                    det.store.stamp_s(k)).candidates
+                         if det.plausible(k, c.match)]
                 query = query_side(det.submap(k, vcfg.submap_radius, k), vcfg) if cands else None
                 for rank, c in enumerate(cands[: cfg.loop.max_verify]):
                     r = verify(c, query, det._match_side(c.match, k), vcfg)

@@ -99,6 +99,19 @@ class LoopDetector:
                                           kf.points.astype(np.float64)))
         return np.concatenate(parts)
 
+    def plausible(self, query: int, match: int) -> bool:
+        """Could the odometry have drifted far enough to put these keyframes where it did, were
+        they the same place? Their odometry positions at most loop.max_gap_m + loop.max_drift x
+        the path travelled between them apart (fixed once both are stored: deterministic)."""
+        cfg = self.cfg.loop
+        gap = float(np.linalg.norm(self.store.T_world_kf_odom(query)[:3, 3]
+                                   - self.store.T_world_kf_odom(match)[:3, 3]))
+        allowed = cfg.max_gap_m + cfg.max_drift * abs(self.path_m(query) - self.path_m(match))
+        if gap > allowed:
+            log.debug("kf %d -> %d: odometry puts them %.1f m apart (> %.1f m): not verified",
+                      query, match, gap, allowed)
+        return gap <= allowed
+
     def _match_side(self, kf_id: int, upto: int) -> Side:
         """Verification clouds of keyframe kf_id's submap (none after `upto`), built once for
         the queries that match it in turn (a revisit matches the same few old keyframes from
@@ -162,8 +175,9 @@ class LoopDetector:
             constraint = followed[1]
         candidates = []
         if constraint is None:
-            candidates = self.index.query(kf.id, query_pts, self.path_m(kf.id),
-                                          self.store.stamp_s(kf.id)).candidates
+            candidates = [c for c in self.index.query(kf.id, query_pts, self.path_m(kf.id),
+                                                      self.store.stamp_s(kf.id)).candidates
+                          if self.plausible(kf.id, c.match)]
         vcfg = self.cfg.loop.verify
         query = query_side(self.submap(kf.id, vcfg.submap_radius, kf.id), vcfg) if candidates \
             else None
