@@ -263,6 +263,7 @@ def cost(argv: list[str]) -> None:
 def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     """Every candidate of every keyframe of a finished run below `threshold`, verified with the
     margin gate off, as dicts (keyframe, rank, descriptor distance, gates, margin, correct)."""
+    import itertools
     import json
     import shutil
     import tempfile
@@ -275,47 +276,43 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     from lidar_slam.loop.verify import query_side
 
     raw = yaml.safe_load((run / "config.yaml").read_text())
-    auto = json.loads((run / "summary.json").read_text()).get("auto_settings", {})
-    sc = raw["loop"]["scan_context"]
-    for key in ("exclude_recent_m", "max_radius_m", "sensor_height_m"):
-        if sc.get(key) == "auto":
-            sc[key] = auto[key]
-    if raw["keyframes"]["distance_m"] == "auto":
-        raw["keyframes"]["distance_m"] = auto["distance_m"]
-    sc["threshold"] = threshold
+    raw["loop"]["scan_context"]["threshold"] = threshold
     raw["loop"]["verify"]["min_margin"] = 0.0
     raw["loop"]["follow_keyframes"] = 0
-    cfg = SlamConfig(**raw)
+    auto = json.loads((run / "summary.json").read_text()).get("auto_settings", {})
+    cfg = adapt.apply(SlamConfig(**raw), auto)  # the "auto" values the run fixed
     gt = open_source(data).ground_truth
     if gt is None:
         sys.exit(f"{data}: no ground truth or reference poses to score loops against")
     rows: list[dict] = []
+    pairs, Ts = [], []
     with tempfile.TemporaryDirectory() as tmp:  # the detector writes its descriptor file there
         shutil.copytree(run / "keyframes", Path(tmp) / "kf")
         det = LoopDetector(cfg, KeyframeReader(Path(tmp) / "kf"))
         vcfg = cfg.loop.verify
-        k = 0
-        while True:
+        for k in itertools.count():  # until the store's first missing keyframe
             try:
                 kf = det.store.get(k)
             except KeyError:
                 break
             pts = kf.points.astype(np.float64)
-            if len(pts):
-                cands = [c for c in det.index.query(k, pts, det.path_m(k),
-                                                    det.store.stamp_s(k)).candidates
-                         if det.plausible(k, c.match)]
-                query = query_side(det.submap(k, vcfg.submap_radius, k), vcfg) if cands else None
-                for rank, c in enumerate(cands[: cfg.loop.max_verify]):
-                    r = verify(c, query, det._match_side(c.match, k), vcfg)
-                    qf, mf = kf.frame_index, det.store.frame_index(c.match)
-                    score = metrics.loop_precision_recall(
-                        np.array([[qf, mf]]), r.T_match_query[None], gt, min_frame_gap=0)
-                    rows.append(dict(kf=k, rank=rank, distance=float(c.score),
-                                     passed=bool(r.accepted), margin=float(r.margin),
-                                     fitness=float(r.fitness), correct=bool(score.correct[0])))
-                det._index(k, pts)
-            k += 1
+            if not len(pts):
+                continue
+            cands = det.candidates(k, pts)
+            query = query_side(det.submap(k, vcfg.submap_radius, k), vcfg) if cands else None
+            for rank, c in enumerate(cands[: cfg.loop.max_verify]):
+                r = verify(c, query, det._match_side(c.match, k), vcfg)
+                pairs.append((kf.frame_index, det.store.frame_index(c.match)))
+                Ts.append(r.T_match_query)
+                rows.append(dict(kf=k, rank=rank, distance=float(c.score),
+                                 passed=bool(r.accepted), margin=float(r.margin),
+                                 fitness=float(r.fitness)))
+            det._index(k, pts)
+    if rows:  # scored once: loop_precision_recall also finds the revisits of the whole sequence
+        correct = metrics.loop_precision_recall(np.array(pairs), np.array(Ts), gt,
+                                                min_frame_gap=0).correct
+        for row, ok in zip(rows, correct):
+            row["correct"] = bool(ok)
     return rows
 
 

@@ -15,7 +15,7 @@ from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import Side, match_side, query_side, verify, verify_followed
 from lidar_slam.keyframes import KeyframeStore
-from lidar_slam.types import LoopConstraint
+from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,12 @@ class LoopDetector:
                       query, match, gap, allowed)
         return gap <= allowed
 
+    def candidates(self, kf_id: int, points: np.ndarray) -> list[LoopCandidate]:
+        """Scan-context candidates of keyframe kf_id (its points, float64) that the odometry
+        makes plausible, best descriptor distance first."""
+        found = self.index.query(kf_id, points, self.path_m(kf_id), self.store.stamp_s(kf_id))
+        return [c for c in found.candidates if self.plausible(kf_id, c.match)]
+
     def _match_side(self, kf_id: int, upto: int) -> Side:
         """Verification clouds of keyframe kf_id's submap (none after `upto`), built once for
         the queries that match it in turn (a revisit matches the same few old keyframes from
@@ -175,9 +181,7 @@ class LoopDetector:
             constraint = followed[1]
         candidates = []
         if constraint is None:
-            candidates = [c for c in self.index.query(kf.id, query_pts, self.path_m(kf.id),
-                                                      self.store.stamp_s(kf.id)).candidates
-                          if self.plausible(kf.id, c.match)]
+            candidates = self.candidates(kf.id, query_pts)
         vcfg = self.cfg.loop.verify
         query = query_side(self.submap(kf.id, vcfg.submap_radius, kf.id), vcfg) if candidates \
             else None
