@@ -115,6 +115,7 @@ UNITS = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m":
          "end_drift_pct": "%", "ate_rmse_m": "m", "odometry_ate_rmse_m": "m",
          "odometry_ms_per_frame": "ms", "loops_ms_per_frame": "ms",
          "loop_worker_ms_per_frame": "ms", "loop_wait_ms_per_frame": "ms",
+         "loop_wait_final_s": "s",
          "backend_ms_per_loop_max": "ms", "backend_s": "s", "backend_final_s": "s",
          "backend_share_pct": "%", "map_load_s": "s", "fps_after_load": "frames/s",
          "localize_ms_per_frame": "ms", "track_ms_per_frame": "ms",

@@ -155,7 +155,7 @@ class Pipeline:
         if self.adaptive is None:  # no scan at all
             self.start(adapt.auto_values(self.cfg, None))
         if self.backend is not None:
-            t0 = time.perf_counter()
+            t0, waited = time.perf_counter(), self.loops.wait_s
             try:
                 self._apply_loops(len(r.store))
             finally:
@@ -169,6 +169,7 @@ class Pipeline:
             r.seconds["backend_final"] = self.backend.seconds["final"]
             r.seconds["loop_worker"] = self.loops.busy_s
             r.seconds["loop_wait"] = self.loops.wait_s
+            r.seconds["loop_wait_final"] = self.loops.wait_s - waited  # the backlog at the end
             r.seconds["loops"] += time.perf_counter() - t0
         else:
             r.kf_poses = self.current_kf_poses()

@@ -44,8 +44,8 @@ def test_kiss_icp_never_deskews_a_second_time():
 
 
 def test_heavy_libraries_load_only_when_needed():
-    """scipy.spatial (~0.4 s) and gtsam load when the ring-key tree and the back-end are first
-    needed, not at start-up: short runs and `--no-loops` skip them; a run never loads open3d
+    """scipy.spatial (~0.4 s) loads when the ring-key tree is first needed and gtsam when the
+    back-end starts, not at import: `--no-loops` skips both; a run never loads open3d
     (tests/test_verify.py checks a whole run)."""
     import subprocess
     import sys

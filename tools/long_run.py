@@ -10,7 +10,8 @@ HDL-64E sweeps with per-point times (true motion distortion) in the world built 
 trajectory, fed one by one to lidar_slam.pipeline.Pipeline with the run folder DIR/run (keyframe
 store on disk, as `lidar-slam run`).
 
-Every --every frames it records the process's RSS (MB), the pipeline's frames/s over the
+Every --every frames it records RSS (MB: summed, the main process, the loop worker, and the
+file-backed part of the sum), the pipeline's frames/s over the
 window (simulation time excluded) and the loops accepted so far; every loop's back-end update
 time (ms) is recorded with its keyframe's frame. Writes DIR/long_run.csv (one row per sample),
 DIR/long_run_loops.csv, DIR/long_run.json (summary: RSS at frame 2,000 and at the last frame,
@@ -34,8 +35,6 @@ from lidar_slam.config import load_config
 from lidar_slam.geometry import make_pose
 from lidar_slam.outputs import write_run
 from lidar_slam.pipeline import Pipeline
-from lidar_slam.simulate import (PoseInterpolator, build_world, get_sensor, load_kitti_truth,
-                                 place_on_terrain, simulate_scan)
 from lidar_slam.types import Scan
 
 REPO = Path(__file__).resolve().parents[1]
@@ -63,10 +62,18 @@ def drive(lap: np.ndarray, frames: int, uturn_frames: int) -> np.ndarray:
     return np.concatenate(legs)[:frames]
 
 
-def rss_mb() -> float:
-    """Resident memory of this process and every child it started (MB)."""
-    proc = psutil.Process()
-    return (proc.memory_info().rss + sum(c.memory_info().rss for c in proc.children(True))) / 2**20
+def rss_mb() -> dict[str, float]:
+    """Resident memory (MB): summed over this process and every child it started (rss_mb),
+    this process alone (main_mb), its children (workers_mb), and the file-backed part of the
+    sum (file_mb: mapped libraries and files, which the kernel can drop and re-read)."""
+    main = psutil.Process()
+    procs = [main] + main.children(True)
+    info = [p.memory_info() for p in procs]
+    mb = 2**20
+    return {"rss_mb": round(sum(i.rss for i in info) / mb, 1),
+            "main_mb": round(info[0].rss / mb, 1),
+            "workers_mb": round(sum(i.rss for i in info[1:]) / mb, 1),
+            "file_mb": round(sum(i.shared for i in info) / mb, 1)}
 
 
 def main() -> None:
@@ -79,6 +86,11 @@ def main() -> None:
     ap.add_argument("--uturn-frames", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    # Here, not at the top: the loop worker process (spawned) imports this module, and the
+    # simulator's open3d would add ~230 MB to it that `lidar-slam run`'s worker does not have.
+    from lidar_slam.simulate import (PoseInterpolator, build_world, get_sensor, load_kitti_truth,
+                                     place_on_terrain, simulate_scan)
+
     args.out.mkdir(parents=True, exist_ok=True)
     truth = load_kitti_truth(KITTI_GT, args.sequence)
     sensor = get_sensor("hdl64")
@@ -104,7 +116,7 @@ def main() -> None:
         window_s += time.perf_counter() - tp
         if (k + 1) % args.every == 0 or k + 1 == len(poses):
             n = (k + 1) - (samples[-1]["frame"] if samples else 0)
-            row = {"frame": k + 1, "rss_mb": round(rss_mb(), 1),
+            row = {"frame": k + 1, **rss_mb(),
                    "fps": round(n / max(window_s, 1e-9), 2),
                    "keyframes": len(pipe.result.store),
                    "loops_accepted": sum(r.accepted for r in pipe.result.loops),
@@ -153,7 +165,11 @@ def plot(samples: list[dict], loops: list[tuple[int, float]], path: Path) -> Non
 
     f = [r["frame"] for r in samples]
     fig, ax = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
-    ax[0].plot(f, [r["rss_mb"] for r in samples], "o-")
+    for key, label in (("rss_mb", "summed"), ("main_mb", "main process"),
+                       ("workers_mb", "loop worker")):
+        if key in samples[0]:
+            ax[0].plot(f, [r[key] for r in samples], "o-", label=label)
+    ax[0].legend(fontsize=8)
     ax[0].set_ylabel("RSS (MB)")
     ax[1].plot(f, [r["fps"] for r in samples], "o-")
     ax[1].set_ylabel("pipeline frames/s")

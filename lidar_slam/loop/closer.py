@@ -19,9 +19,12 @@ from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
 
-# Match submaps whose verification clouds are kept (about 1.8 MB each: sim 07's peak RSS is
-# 239 MB with 16 kept, 210 MB with none).
-MATCH_SIDES_KEPT = 16
+# Match submaps whose verification clouds are kept (about 2 MB each). With the odometry
+# plausibility gate, consecutive query keyframes matching the same old keyframe are most of the
+# reuse: on simulated 00 the last 2 kept serve 37 of 351 verifications, 16 kept 49; on the
+# 10,000-scan drive 124 vs 144 of 2,171. 16 kept grew the worker's RSS by 65 MB over that
+# drive (cache and heap fragmentation; 2 kept: see docs/benchmarks, long run).
+MATCH_SIDES_KEPT = 2
 
 
 @dataclass(frozen=True)
@@ -121,8 +124,7 @@ class LoopDetector:
     def _match_side(self, kf_id: int, upto: int) -> Side:
         """Verification clouds of keyframe kf_id's submap (none after `upto`), built once for
         the queries that match it in turn (a revisit matches the same few old keyframes from
-        several query keyframes: on simulated 00, 141 of 316 verifications found their match
-        among the last 32 used). Built from the same points, so the same result."""
+        several query keyframes in a row). Built from the same points, so the same result."""
         radius = self.cfg.loop.verify.submap_radius
         key = (kf_id, min(upto, kf_id + radius))
         side = self._sides.pop(key, None)
