@@ -111,6 +111,11 @@ def test_recent_keyframes_are_never_candidates_and_grids_on_disk_match_ram(ouste
                                                                for c in b.candidates]
         if f < 105:
             assert a.best_match is None and not a.candidates
+        # keep= drops neighbours before their grids are compared: the same candidates as
+        # filtering the result afterwards.
+        even = ram.query(f, pts, float(f), keep=lambda m: m % 2 == 0)
+        assert [(c.match, c.score) for c in even.candidates] == [
+            (c.match, c.score) for c in b.candidates if c.match % 2 == 0]
         disk.add(f, pts, float(f))
         ram.add(f, pts, float(f))
     with pytest.raises(ValueError):

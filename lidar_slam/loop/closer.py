@@ -111,15 +111,15 @@ class LoopDetector:
                                    - self.store.T_world_kf_odom(match)[:3, 3]))
         allowed = cfg.max_gap_m + cfg.max_drift * abs(self.path_m(query) - self.path_m(match))
         if gap > allowed:
-            log.debug("kf %d -> %d: odometry puts them %.1f m apart (> %.1f m): not verified",
+            log.debug("kf %d -> %d: odometry puts them %.1f m apart (> %.1f m): not a candidate",
                       query, match, gap, allowed)
         return gap <= allowed
 
     def candidates(self, kf_id: int, points: np.ndarray) -> list[LoopCandidate]:
         """Scan-context candidates of keyframe kf_id (its points, float64) that the odometry
         makes plausible, best descriptor distance first."""
-        found = self.index.query(kf_id, points, self.path_m(kf_id), self.store.stamp_s(kf_id))
-        return [c for c in found.candidates if self.plausible(kf_id, c.match)]
+        return self.index.query(kf_id, points, self.path_m(kf_id), self.store.stamp_s(kf_id),
+                                lambda match: self.plausible(kf_id, match)).candidates
 
     def _match_side(self, kf_id: int, upto: int) -> Side:
         """Verification clouds of keyframe kf_id's submap (none after `upto`), built once for

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -249,12 +250,15 @@ class ScanContextIndex:
         return pos is not None and pos < self.n_eligible(path_m, stamp_s)
 
     def query(self, kf_id: int, points_kf: np.ndarray, path_m: float,
-              stamp_s: float = np.nan) -> QueryResult:
-        """Loop candidates for keyframe kf_id among the eligible older keyframes."""
+              stamp_s: float = np.nan, keep: Callable[[int], bool] | None = None
+              ) -> QueryResult:
+        """Loop candidates for keyframe kf_id among the eligible older keyframes; keep(match
+        id), when given, drops ring-key neighbours before their grids are compared (the same
+        candidates as filtering the result, without the cost)."""
         n_eligible = self.n_eligible(path_m, stamp_s)
         if n_eligible == 0:
             return QueryResult()
-        return self._query(kf_id, self._describe(kf_id, points_kf), n_eligible)
+        return self._query(kf_id, self._describe(kf_id, points_kf), n_eligible, keep)
 
     def query_all(self, points: np.ndarray) -> QueryResult:
         """Candidates among every indexed keyframe for a cloud that is not indexed (a scan to
@@ -263,11 +267,16 @@ class ScanContextIndex:
             return QueryResult()
         return self._query(-1, describe(points, self.cfg), len(self))
 
-    def _query(self, kf_id: int, desc: Descriptor, n_eligible: int) -> QueryResult:
+    def _query(self, kf_id: int, desc: Descriptor, n_eligible: int,
+               keep: Callable[[int], bool] | None = None) -> QueryResult:
         scored = []
         for j in self._nearest(desc.ring_key, n_eligible):
+            if keep is not None and not keep(int(self._ids.data[j, 0])):
+                continue
             dist, shift = align(desc, self._stored(int(j)), self.cfg.local_search_sectors)
             scored.append((dist, int(self._ids.data[j, 0]), shift_to_yaw(shift, self.cfg.sectors)))
+        if not scored:
+            return QueryResult()
         scored.sort()
         best = scored[0]
         kept = [LoopCandidate(kf_id, m, d, y) for d, m, y in scored if d < self.cfg.threshold]
