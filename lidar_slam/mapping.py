@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.geometry import transform_points
 from lidar_slam.io.atomic import atomic_path
 from lidar_slam.keyframes import KeyframeStore
 
@@ -54,23 +53,49 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     return rows[:, :3].astype(np.float64), rows[:, 3].copy() if ncol == 4 else None
 
 
-_AXIS_BITS = 21  # voxel coordinates per axis: +-2^20 voxels (+-210 km at 0.2 m)
+_XY_BITS, _Z_BITS = 21, 20  # voxel coordinates: +-2^20 voxels across (+-210 km at 0.2 m),
+# +-2^19 up (+-105 km)
 
 
-def _voxel_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """World voxel key (int64) per point, and its tile (int64) of TILE_VOXELS^2 voxels."""
-    cells = np.floor(points / voxel_m).astype(np.int64) + (1 << (_AXIS_BITS - 1))
-    keys = (cells[:, 0] << (2 * _AXIS_BITS)) | (cells[:, 1] << _AXIS_BITS) | cells[:, 2]
-    tiles = (cells[:, 0] // TILE_VOXELS) * (1 << _AXIS_BITS) + cells[:, 1] // TILE_VOXELS
-    return keys, tiles
+def _sort_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, int]:
+    """One uint64 per point that sorts by tile (TILE_VOXELS^2 voxels) first, then by voxel
+    (x, y, z) inside it, and the shift that leaves the tile: ((tile x, tile y), local x,
+    local y, z) packed high to low, so one sort groups the points of each tile and of each voxel
+    in the order the map is written."""
+    cells = np.floor(points / voxel_m).astype(np.int64)
+    cells[:, :2] += 1 << (_XY_BITS - 1)
+    cells[:, 2] += 1 << (_Z_BITS - 1)
+    if cells.size and (cells[:, :2].min() < 0 or cells[:, :2].max() >= 1 << _XY_BITS
+                       or cells[:, 2].min() < 0 or cells[:, 2].max() >= 1 << _Z_BITS):
+        raise ValueError(f"map points more than {(1 << (_XY_BITS - 1)) * voxel_m:.0f} m across "
+                         f"or {(1 << (_Z_BITS - 1)) * voxel_m:.0f} m up or down from the first "
+                         f"keyframe: too far for {voxel_m} m map voxels")
+    local_bits = (TILE_VOXELS - 1).bit_length()
+    tile_bits = ((1 << _XY_BITS) // TILE_VOXELS).bit_length()
+    assert 2 * (tile_bits + local_bits) + _Z_BITS <= 64
+    c = cells.astype(np.uint64)
+    tx, lx = np.divmod(c[:, 0], np.uint64(TILE_VOXELS))
+    ty, ly = np.divmod(c[:, 1], np.uint64(TILE_VOXELS))
+    key = (tx << np.uint64(tile_bits)) | ty
+    key = (key << np.uint64(local_bits)) | lx
+    key = (key << np.uint64(local_bits)) | ly
+    key = (key << np.uint64(_Z_BITS)) | c[:, 2]
+    return key, 2 * local_bits + _Z_BITS
 
 
-def _reduce(keys: np.ndarray, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sum the rows of sums (K, C) that share a key: (unique keys, summed rows)."""
-    order = np.argsort(keys, kind="stable")
-    keys, sums = keys[order], sums[order]
+def _reduce(keys: np.ndarray, rows: np.ndarray, counts: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sum the rows (K, C) that share a key, and their counts (each row counts `counts`, else
+    1): (unique keys ascending, summed rows, summed counts)."""
+    order = np.argsort(keys)
+    keys = keys[order]
     starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    return keys[starts], np.add.reduceat(sums, starts, axis=0)
+    sums = np.add.reduceat(rows[order], starts, axis=0)
+    if counts is None:
+        counts = np.diff(np.r_[starts, len(keys)]).astype(np.float64)
+    else:
+        counts = np.add.reduceat(counts[order], starts)
+    return keys[starts], sums, counts
 
 
 def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.ndarray],
@@ -93,42 +118,49 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
     spill = Path(tempfile.mkdtemp(prefix="map_tiles_", dir=path.parent))
     try:
         tiles: set[int] = set()
-        buf: list[np.ndarray] = []
+        chunk = np.empty((CHUNK_POINTS, 4))  # x y z intensity, world frame
         n_buf = 0
 
         def flush() -> None:
-            nonlocal buf, n_buf
-            if not buf:
+            nonlocal n_buf
+            if not n_buf:
                 return
-            rows = np.concatenate(buf)  # x y z intensity, world frame
-            buf, n_buf = [], 0
-            keys, tile = _voxel_keys(rows[:, :3], voxel_m)
-            sums = np.hstack([rows, np.ones((len(rows), 1))])  # + count
-            order = np.argsort(tile, kind="stable")
-            tile, keys, sums = tile[order], keys[order], sums[order]
+            rows, n_buf = chunk[:n_buf], 0
+            keys, tile_shift = _sort_keys(rows[:, :3], voxel_m)
+            keys, sums, counts = _reduce(keys, rows)
+            tile = keys >> np.uint64(tile_shift)  # ascending, like the keys
             cut = np.flatnonzero(tile[1:] != tile[:-1]) + 1
-            for t, k, s in zip(tile[np.r_[0, cut]], np.split(keys, cut), np.split(sums, cut)):
-                k, s = _reduce(k, s)
+            records = np.hstack([keys.view(np.float64)[:, None], sums, counts[:, None]])
+            for t, rec in zip(tile[np.r_[0, cut]], np.split(records, cut)):
                 tiles.add(int(t))
                 with open(spill / f"{int(t)}.bin", "ab") as fh:
-                    fh.write(np.hstack([k.view(np.float64)[:, None], s]).tobytes())
+                    fh.write(rec.tobytes())
 
         for kf_id in ids:
             kf = store.get(kf_id)
-            pts = transform_points(T_world_kf[kf_id], kf.points.astype(np.float64))
-            inten = kf.intensity if has_intensity else np.zeros(len(pts), np.float32)
-            buf.append(np.hstack([pts, inten.astype(np.float64)[:, None]]))
-            n_buf += len(pts)
-            if n_buf >= CHUNK_POINTS:
-                flush()
+            pts = kf.points
+            done = 0
+            while done < len(pts):  # a keyframe larger than the chunk goes in pieces
+                take = min(len(pts) - done, CHUNK_POINTS - n_buf)
+                part = slice(done, done + take)
+                T = T_world_kf[kf_id]
+                rows = chunk[n_buf:n_buf + take]
+                np.matmul(pts[part].astype(np.float64), T[:3, :3].T, out=rows[:, :3])
+                rows[:, :3] += T[:3, 3]
+                rows[:, 3] = kf.intensity[part] if has_intensity else 0.0
+                n_buf += take
+                done += take
+                if n_buf == CHUNK_POINTS:
+                    flush()
         flush()
         body = spill / "body.bin"
         n = 0
         with open(body, "wb") as out:
             for t in sorted(tiles):
                 rec = np.fromfile(spill / f"{t}.bin").reshape(-1, 6)
-                keys, sums = _reduce(np.ascontiguousarray(rec[:, 0]).view(np.int64), rec[:, 1:])
-                mean = sums[:, :4] / sums[:, 4:5]
+                keys, sums, counts = _reduce(np.ascontiguousarray(rec[:, 0]).view(np.uint64),
+                                             rec[:, 1:5], rec[:, 5])
+                mean = sums / counts[:, None]
                 out.write(_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
                 n += len(keys)
         tmp = path.with_name(path.name + ".tmp")

@@ -92,8 +92,10 @@ class OdometryStream:
         for T in done:  # a resumed run: the frames of its checkpoint
             self.append(T)
 
+    _LINE = " ".join(["%.9e"] * 12) + "\n"  # as np.savetxt(fmt="%.9e") writes it
+
     def append(self, T_world_scan: np.ndarray) -> None:
-        self._fh.write(" ".join(f"{v:.9e}" for v in T_world_scan[:3, :4].ravel()) + "\n")
+        self._fh.write(self._LINE % tuple(T_world_scan[:3, :4].ravel().tolist()))
 
     def close(self) -> None:
         self._fh.close()

@@ -70,3 +70,24 @@ def test_keyframes_streamed_map_equals_downsampling_everything(tmp_path, monkeyp
     key = lambda p: np.lexsort(np.floor(p / 0.2).T)  # noqa: E731
     np.testing.assert_allclose(pts[key(pts)], ref[key(ref)].astype(np.float32), atol=1e-4)
     np.testing.assert_allclose(inten[key(pts)], ref_i[key(ref)], atol=1e-5)
+
+
+def test_keyframes_map_is_the_same_whatever_the_chunk_size(tmp_path, monkeypatch):
+    import lidar_slam.mapping as mapping
+
+    store = KeyframeStore(tmp_path / "kf")
+    _fill(store)
+    poses = {k: store.T_world_kf_odom(k) for k in range(len(store))}
+    n = write_map(tmp_path / "a.ply", store, poses, 0.5)
+    monkeypatch.setattr(mapping, "CHUNK_POINTS", 137)  # keyframes (500+ points) split in pieces
+    assert write_map(tmp_path / "b.ply", store, poses, 0.5) == n
+    a, b = read_ply(tmp_path / "a.ply"), read_ply(tmp_path / "b.ply")
+    np.testing.assert_allclose(a[0], b[0], atol=1e-5)
+    np.testing.assert_allclose(a[1], b[1], atol=1e-5)
+
+
+def test_keyframes_map_refuses_points_beyond_its_voxel_keys(tmp_path):
+    store = KeyframeStore(tmp_path / "kf")
+    store.add(0, np.eye(4), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0e5]]), None)
+    with pytest.raises(ValueError, match="too far"):
+        write_map(tmp_path / "map.ply", store, {0: np.eye(4)}, 0.2)

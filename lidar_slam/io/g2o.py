@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
-from lidar_slam.geometry import matrix_from_quat, to_xyz_quat
+from lidar_slam.geometry import matrix_from_quat, quat_from_matrix
 from lidar_slam.io.atomic import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -246,6 +246,14 @@ def _fmt(values) -> str:
     return " ".join(repr(float(v)) for v in values)
 
 
+def _xyz_quat(poses: list[np.ndarray]) -> np.ndarray:
+    """(K, 7) x y z qx qy qz qw of K 4x4 poses (to_xyz_quat, batched)."""
+    if not poses:
+        return np.zeros((0, 7))
+    T = np.stack(poses)
+    return np.hstack([T[:, :3, 3], quat_from_matrix(T[:, :3, :3])])
+
+
 def write_g2o(path: str | Path, graph: G2oGraph) -> None:
     """Write vertices (sorted by id) then edges; 3D information goes back to g2o's order."""
     n = 3 if graph.dims == 2 else 6
@@ -259,10 +267,13 @@ def write_g2o(path: str | Path, graph: G2oGraph) -> None:
             lines.append(f"EDGE_SE2 {e.i} {e.j} {_fmt(se2_params(e.T_i_j))} "
                          f"{_fmt(e.information[iu])}")
     else:
-        for k in keys:
-            lines.append(f"VERTEX_SE3:QUAT {k} {_fmt(to_xyz_quat(graph.poses[k]))}")
-        for e in graph.edges:
+        # Quaternions of every pose at once: one per call costs ~0.1 ms (an eigen-solve), half a
+        # second on a 1,500-keyframe graph at the end of every run.
+        vertices = _xyz_quat([graph.poses[k] for k in keys])
+        measured = _xyz_quat([e.T_i_j for e in graph.edges])
+        for k, v in zip(keys, vertices):
+            lines.append(f"VERTEX_SE3:QUAT {k} {_fmt(v)}")
+        for e, m in zip(graph.edges, measured):
             info = gtsam_to_g2o_information(e.information)
-            lines.append(f"EDGE_SE3:QUAT {e.i} {e.j} {_fmt(to_xyz_quat(e.T_i_j))} "
-                         f"{_fmt(info[iu])}")
+            lines.append(f"EDGE_SE3:QUAT {e.i} {e.j} {_fmt(m)} {_fmt(info[iu])}")
     write_text_atomic(path, "\n".join(lines) + "\n")
