@@ -434,6 +434,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     stop = _StopSignals()
     with stop:  # from here on, a signal stops the run after the scan in hand
         pipe = Pipeline(cfg, out, visualizer, resume=resuming)
+        pipe.frames_total = total
         done = 0
         if resuming:
             done = checkpoint.restore(out, pipe)

@@ -146,6 +146,7 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary["loop_worker_ms_per_frame"] = 1e3 * result.seconds["loop_worker"] / max(n, 1)
         summary["loop_wait_ms_per_frame"] = 1e3 * result.seconds["loop_wait"] / max(n, 1)
         summary["loop_wait_final_s"] = result.seconds.get("loop_wait_final", 0.0)
+        summary["loop_worker_urgent_s"] = result.seconds.get("loop_worker_urgent", 0.0)
     if result.loop_update_s:
         summary["backend_ms_per_loop_max"] = 1e3 * max(s for _, s in result.loop_update_s)
     if "backend" in result.seconds:  # live (window) updates + final solve, and their share

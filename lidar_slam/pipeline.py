@@ -74,6 +74,7 @@ class Pipeline:
             self.result.graph = self.backend.graph
         self.viz = viz
         self.loops_applied_upto = -1  # keyframes whose loop results are in the graph
+        self.frames_total: int | None = None  # scans the run will have, when known (pacing)
         self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
 
     def start(self, adaptive: dict[str, float]) -> None:
@@ -131,6 +132,8 @@ class Pipeline:
             self.backend.add_keyframe(kf.id, kf.T_world_kf_odom)
             self.loops.submit(kf.id)
             self._apply_loops(kf.id - c.loop.collect_lag_keyframes)
+            self.loops.pace(None if self.frames_total is None
+                            else self.frames_total - len(self.result.indices) - 1)
             self.result.seconds["loops"] += time.perf_counter() - t0
 
     def _apply_loops(self, upto: int) -> None:
@@ -156,6 +159,7 @@ class Pipeline:
             self.start(adapt.auto_values(self.cfg, None))
         if self.backend is not None:
             t0, waited = time.perf_counter(), self.loops.wait_s
+            self.loops.pace(0)  # nothing left to share the cores with
             try:
                 self._apply_loops(len(r.store))
             finally:
@@ -170,6 +174,7 @@ class Pipeline:
             r.seconds["loop_worker"] = self.loops.busy_s
             r.seconds["loop_wait"] = self.loops.wait_s
             r.seconds["loop_wait_final"] = self.loops.wait_s - waited  # the backlog at the end
+            r.seconds["loop_worker_urgent"] = self.loops.urgent_s
             r.seconds["loops"] += time.perf_counter() - t0
         else:
             r.kf_poses = self.current_kf_poses()

@@ -129,3 +129,14 @@ def test_default_config_closes_the_indoor_ouster_loop(ouster_loop):
     for r in accepted:
         d = inverse(relative(ref[r.match_frame], ref[r.query_frame])) @ r.T_match_query
         assert np.linalg.norm(d[:3, 3]) < 1.0 and rotation_angle_deg(d) < 5.0, r
+
+
+def test_loop_worker_gets_the_odometry_priority_only_for_a_long_or_final_backlog():
+    from lidar_slam.loop.worker import is_urgent
+
+    assert not is_urgent(0, 200, 0)  # nothing to do
+    assert not is_urgent(100, 200, 5000)  # mid-drive, half the lag: the idle CPU will do
+    assert is_urgent(150, 200, 5000)  # the odometry would soon wait for it
+    assert is_urgent(100, 200, 300) and not is_urgent(10, 200, 300)  # the last scans
+    assert not is_urgent(100, 200, None)  # end unknown (a stream): only the lag rule
+    assert is_urgent(1, 200, 0)  # after the last scan

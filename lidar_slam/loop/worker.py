@@ -29,6 +29,13 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.keyframes import KeyframeReader, KeyframeStore
 
 NICENESS = 10
+# The worker process runs at the odometry's priority (instead of SCHED_IDLE) while its backlog
+# is at least this share of loop.collect_lag_keyframes (the odometry would soon stop and wait
+# for it), or at least as many keyframes as the remaining frames would make (about one per
+# KEYFRAME_FRAMES frames), so that the backlog is worked off beside the last scans on both
+# cores instead of on one while the other idles after the last scan. Timing only.
+URGENT_LAG_SHARE = 0.75
+KEYFRAME_FRAMES = 3
 
 
 def _lower_this_threads_priority(idle: bool = False) -> None:
@@ -70,6 +77,27 @@ def _start_process(cfg_json: dict, store_root: str) -> None:
     _DETECTOR = LoopDetector(SlamConfig(**cfg_json), KeyframeReader(store_root))
 
 
+def is_urgent(backlog: int, lag: int, frames_left: int | None) -> bool:
+    """Whether a backlog of unfinished keyframes needs the odometry's priority (see
+    URGENT_LAG_SHARE)."""
+    return backlog > 0 and (backlog >= URGENT_LAG_SHARE * max(lag, 1) or (
+        frames_left is not None and backlog * KEYFRAME_FRAMES >= frames_left))
+
+
+def _set_priority(pid: int, urgent: bool) -> bool:
+    """The worker process (single-threaded: its pid is its thread) at the normal or the idle
+    policy; False when the system does not allow it (leaving SCHED_IDLE needs RLIMIT_NICE room
+    or CAP_SYS_NICE): the worker then keeps its priority, which changes timing only."""
+    try:
+        if urgent:
+            os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+        else:
+            os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
 def _timed_process(kf_id: int):
     t0 = time.perf_counter()
     return _DETECTOR.process(kf_id), time.perf_counter() - t0
@@ -93,6 +121,11 @@ class LoopWorker:
         self._pending: deque[tuple[int, Future]] = deque()
         self._pool: Executor | None = None
         self.detector = None
+        self.lag = cfg.loop.collect_lag_keyframes
+        self._pid: int | None = None  # the worker process, while its priority can be changed
+        self._urgent = False
+        self.urgent_s = 0.0  # time the worker ran at the odometry's priority
+        self._urgent_since = 0.0
         if mode == "process":
             ctx = multiprocessing.get_context("spawn")  # fork is unsafe with TBB threads running
             self._pool = ProcessPoolExecutor(
@@ -108,6 +141,7 @@ class LoopWorker:
                 self._pool.submit(int)  # spawns the worker process, which idles until needed
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+            self._pid = next(iter(self._pool._processes), None)
         else:
             from lidar_slam.loop.closer import LoopDetector
 
@@ -130,6 +164,26 @@ class LoopWorker:
             job = Future()
             job.set_result(self._local(kf_id))
         self._pending.append((kf_id, job))
+
+    def pace(self, frames_left: int | None) -> None:
+        """Raise the worker process to the odometry's priority while its backlog is long (see
+        URGENT_LAG_SHARE), back to idle once it is not; frames_left: scans still to come, when
+        known."""
+        if self._pid is None:
+            return
+        urgent = is_urgent(sum(not job.done() for _, job in self._pending), self.lag,
+                           frames_left)
+        if urgent == self._urgent:
+            return
+        if not _set_priority(self._pid, urgent):
+            self._pid = None  # not allowed here: stay idle
+            return
+        now = time.perf_counter()
+        if urgent:
+            self._urgent_since = now
+        else:
+            self.urgent_s += now - self._urgent_since
+        self._urgent = urgent
 
     def reindex(self, upto: int, last_loop=None) -> None:
         """Index keyframes 0..upto from the store (resuming a run), before any submit();
@@ -154,6 +208,10 @@ class LoopWorker:
 
     def close(self) -> None:
         """Stop the worker (queued keyframes not yet started are dropped)."""
+        if self._urgent:
+            self.urgent_s += time.perf_counter() - self._urgent_since
+            self._urgent = False
+        self._pid = None
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
