@@ -10,8 +10,9 @@ same order, whatever the machine's load.
 A process by default (`loop.worker: process`): kiss-icp's registration and small_gicp's ICP both
 hold Python's GIL while they run, so a worker *thread* stalls the odometry for as long as each
 verification ICP takes. The worker process reads keyframes from the run folder's store (only
-ids cross the pipe), runs on the CPU time the odometry leaves (SCHED_IDLE), and ignores Ctrl-C
-(the main process decides when to stop). "thread" and "inline" (in the main flow, for debugging) remain.
+ids cross the pipe), runs on the CPU time the odometry leaves (SCHED_IDLE; raised to the
+odometry's priority while its backlog is long, see pace()), and ignores Ctrl-C (the main process
+decides when to stop). "thread" and "inline" (in the main flow, for debugging) remain.
 """
 
 from __future__ import annotations
