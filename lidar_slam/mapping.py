@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_slam.geometry import transform_points
 from lidar_slam.io.atomic import atomic_path
 from lidar_slam.keyframes import KeyframeStore
 
@@ -138,15 +139,13 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
 
         for kf_id in ids:
             kf = store.get(kf_id)
-            pts = kf.points
+            pts, T = kf.points, T_world_kf[kf_id]
             done = 0
             while done < len(pts):  # a keyframe larger than the chunk goes in pieces
                 take = min(len(pts) - done, CHUNK_POINTS - n_buf)
                 part = slice(done, done + take)
-                T = T_world_kf[kf_id]
                 rows = chunk[n_buf:n_buf + take]
-                np.matmul(pts[part].astype(np.float64), T[:3, :3].T, out=rows[:, :3])
-                rows[:, :3] += T[:3, 3]
+                rows[:, :3] = transform_points(T, pts[part].astype(np.float64))
                 rows[:, 3] = kf.intensity[part] if has_intensity else 0.0
                 n_buf += take
                 done += take

@@ -172,8 +172,12 @@ class LoopWorker:
         known."""
         if self._pid is None:
             return
-        urgent = is_urgent(sum(not job.done() for _, job in self._pending), self.lag,
-                           frames_left)
+        backlog = 0  # one worker finishes jobs in order: the unfinished ones are the newest
+        for _, job in reversed(self._pending):
+            if job.done():
+                break
+            backlog += 1
+        urgent = is_urgent(backlog, self.lag, frames_left)
         if urgent == self._urgent:
             return
         if not _set_priority(self._pid, urgent):
