@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
-import small_gicp
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.crop import range_mask
@@ -33,6 +32,7 @@ from lidar_slam.loop.ground import level_ground
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import verify
 from lidar_slam.odometry import VoxelSelector
+from lidar_slam.registration import PlaneTarget, voxel_centroids
 from lidar_slam.saved_map import SavedMap
 from lidar_slam.types import LoopCandidate, Scan
 
@@ -78,15 +78,6 @@ def initial_pose_matrix(x: float, y: float, z: float, yaw_deg: float) -> np.ndar
     return make_pose(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), [x, y, z])
 
 
-def _orthonormal(T: np.ndarray) -> np.ndarray:
-    """T with its rotation re-orthonormalised (products of many poses drift off SO(3) in the
-    last bits, and small_gicp's Sophus refuses such a rotation)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = U @ Vt
-    return out
-
-
 def registration_points(deskewed: DeskewedScan, cfg: SlamConfig) -> np.ndarray:
     """The points registered against the map (N, 3), sensor frame at the reference instant:
     the scan's deskewed points in range, one per localize.source_voxel_m voxel (centroids)."""
@@ -94,11 +85,7 @@ def registration_points(deskewed: DeskewedScan, cfg: SlamConfig) -> np.ndarray:
     pts = deskewed.points
     if not deskewed.selected:  # raw points: crop them (a selection is cropped already)
         pts = pts[range_mask(pts, d.min_range_m, d.max_range_m)]
-    if len(pts) == 0:
-        return np.zeros((0, 3))
-    return small_gicp.voxelgrid_sampling(np.ascontiguousarray(pts, np.float64),
-                                         cfg.localize.source_voxel_m,
-                                         num_threads=1).points()[:, :3]
+    return voxel_centroids(pts, cfg.localize.source_voxel_m)
 
 
 def structure_points(points: np.ndarray, min_height_m: float) -> np.ndarray:
@@ -111,37 +98,13 @@ def structure_points(points: np.ndarray, min_height_m: float) -> np.ndarray:
     return points[points @ ground.R_level_sensor[2] + ground.height_m > min_height_m]
 
 
-class MapTarget:
-    """A fixed registration target: map-frame points, voxel-downsampled, with normals and a
-    KD-tree (small_gicp, one thread: reproducible). Tracking is point-to-plane ICP against it."""
+class MapTarget(PlaneTarget):
+    """The tracking target: map-frame points with the localize section's voxel, iterations and
+    inlier distance. Tracking is point-to-plane ICP against it."""
 
     def __init__(self, points_map: np.ndarray, cfg: SlamConfig):
-        self.cfg = cfg.localize
-        self.cloud = small_gicp.voxelgrid_sampling(np.ascontiguousarray(points_map, np.float64),
-                                                   self.cfg.map_voxel_m, num_threads=1)
-        self.tree = small_gicp.KdTree(self.cloud, num_threads=1)
-        small_gicp.estimate_normals(self.cloud, self.tree, 10, 1)
-
-    def __len__(self) -> int:
-        return self.cloud.size()
-
-    def align(self, source: np.ndarray, T_map_guess: np.ndarray, max_correspondence_m: float
-              ) -> np.ndarray:
-        """T_map_points of source (N, 3) by point-to-plane ICP from the guess."""
-        result = small_gicp.align(self.cloud, small_gicp.PointCloud(np.ascontiguousarray(source)),
-                                  self.tree, init_T_target_source=_orthonormal(T_map_guess),
-                                  registration_type="PLANE_ICP",
-                                  max_correspondence_distance=max_correspondence_m,
-                                  num_threads=1, max_iterations=self.cfg.max_iterations)
-        return np.asarray(result.T_target_source)
-
-    def fitness(self, points: np.ndarray, T_map_points: np.ndarray) -> float:
-        """Share of points (N, 3) within localize.inlier_m of a map point once placed."""
-        if len(points) == 0:
-            return 0.0
-        moved = points @ T_map_points[:3, :3].T + T_map_points[:3, 3]
-        _, sq = self.tree.batch_nearest_neighbor_search(moved, num_threads=1)
-        return float(np.mean(np.asarray(sq) <= self.cfg.inlier_m**2))
+        lc = cfg.localize
+        super().__init__(points_map, lc.map_voxel_m, lc.max_iterations, lc.inlier_m)
 
 
 class LocalMaps:

@@ -11,6 +11,7 @@ KissICP's on real scans.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,13 +20,15 @@ from kiss_icp.pybind import kiss_icp_pybind as kp
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import DeskewedScan
-from lidar_slam.geometry import interpolate
+from lidar_slam.geometry import interpolate, rotation_angle_deg, transform_points
+from lidar_slam.registration import PlaneTarget, voxel_centroids
 
 
 def _vec(points: np.ndarray):
     return kp._Vector3dVector(points)
 
 
+REFINE_ITERATIONS = 20  # point-to-plane iterations of a slow scan's refinement (3-6 used)
 _INDEX_BITS = 22  # up to 4M points per scan
 _INDEX_MASK = np.uint64((1 << _INDEX_BITS) - 1)
 
@@ -100,6 +103,40 @@ class Odometry:
         # state is not exposed by kiss-icp, so a checkpoint appends them to a file and a resumed
         # run replays them all to rebuild it exactly.
         self._deviations: list[np.ndarray] = []
+        # The refinement of slow scans: the last keyframes' clouds (odometry world frame) and
+        # the target built from them when a slow scan needs it.
+        self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=o.refine_keyframes)
+        self._target: PlaneTarget | None = None
+        self.n_refined = 0
+        self.n_refine_refused = 0
+
+    def add_anchor(self, T_world_kf: np.ndarray, points_kf: np.ndarray) -> None:
+        """A new keyframe for the refinement target: its odometry pose and its cloud (N, 3) in
+        its own frame; it replaces the oldest (placed only when a slow scan needs them)."""
+        self._anchors.append((T_world_kf, points_kf))
+        self._target = None
+
+    def _refine(self, frame_down, T_world_points: np.ndarray) -> np.ndarray:
+        """T_world_points refined against the last keyframes (or kept, see the config)."""
+        o = self.cfg.odometry
+        if self._target is None:
+            points = np.concatenate([transform_points(T, np.asarray(p, np.float64))
+                                     for T, p in self._anchors])
+            self._target = PlaneTarget(points,
+                                       self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
+                                       o.refine_max_correspondence_m)
+        source = voxel_centroids(np.asarray(frame_down),
+                                 o.refine_voxel_m or 1.5 * self.voxel_size_m)
+        if len(source) < 3 or len(self._target) < 3:
+            return T_world_points
+        T = self._target.align(source, T_world_points, o.refine_max_correspondence_m)
+        correction = np.linalg.inv(T_world_points) @ T
+        if (np.linalg.norm(correction[:3, 3]) > o.refine_max_correction_m
+                or rotation_angle_deg(correction) > o.refine_max_correction_deg):
+            self.n_refine_refused += 1
+            return T_world_points
+        self.n_refined += 1
+        return T
 
     def _new_threshold(self) -> None:
         o = self.cfg.odometry
@@ -107,10 +144,12 @@ class Odometry:
                                                 min_motion_th=o.min_motion_m,
                                                 max_range=self.max_range_m)
 
-    def register(self, points: np.ndarray, selected: bool = False) -> np.ndarray | None:
+    def register(self, points: np.ndarray, selected: bool = False, refine: bool = False
+                 ) -> np.ndarray | None:
         """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
         (and no state change) when no point lies in range. selected: the points are already
-        cropped and one per voxel of half the voxel size (see DeskewedScan)."""
+        cropped and one per voxel of half the voxel size (see DeskewedScan). refine: refine the
+        pose against the last keyframes' clouds (when there are any)."""
         if selected:
             frame_down = _vec(points)
         else:
@@ -124,6 +163,8 @@ class Odometry:
         new_pose = self._registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
+        if refine and self._anchors:
+            new_pose = self._refine(frame_down, new_pose)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
@@ -134,7 +175,7 @@ class Odometry:
 
     def step(self, scan: DeskewedScan) -> OdometryResult:
         """Register a deskewed scan and return its pose at the stamp."""
-        T_world_ref = self.register(scan.points, scan.selected)
+        T_world_ref = self.register(scan.points, scan.selected, self.is_slow(scan.period_s))
         if T_world_ref is None:
             # The prediction is of the sweep's middle, like every registration: move it to the
             # stamp with the last registered scan's offset.
@@ -155,6 +196,11 @@ class Odometry:
         self._last_ref_s = scan.ref_s
         return OdometryResult(T_world_ref @ T_ref_stamp, T_world_ref, T_ref_stamp, True, first)
 
+    def is_slow(self, period_s: float) -> bool:
+        """Whether the last motion is slower than odometry.refine_below_mps (0: never)."""
+        limit = self.cfg.odometry.refine_below_mps
+        return limit > 0 and float(np.linalg.norm(self.last_delta[:3, 3])) < limit * period_s
+
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next pose; advances the state without a scan."""
         self.last_pose = self.last_pose @ self.last_delta
@@ -172,7 +218,8 @@ class Odometry:
         """Poses, counters and the local map's points (the deviations go by take_deviations)."""
         return {"last_pose": self.last_pose, "last_delta": self.last_delta,
                 "map_points": np.asarray(self._map._point_cloud()),
-                "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s])}
+                "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
+                                      self.n_refined, self.n_refine_refused])}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
         """Continue from state(): the map's points go back into their voxels, the adaptive
@@ -186,6 +233,7 @@ class Odometry:
         for dev in deviations:
             self._threshold._update_model_deviation(model_deviation=dev)
         self._deviations = []
-        n, last_ref, first_ref = state["counters"]
+        n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
+        self.n_refined, self.n_refine_refused = (int(v) for v in (refined or (0, 0)))
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)

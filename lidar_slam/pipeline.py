@@ -43,6 +43,8 @@ class RunResult:
     # (match kf, query kf) -> "inlier" / "rejected": what the final solve made of each loop
     loop_backend: dict = field(default_factory=dict)
     backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
+    # slow scans refined against the last keyframes, and refinements refused (see odometry)
+    refined_scans: tuple[int, int] = (0, 0)
 
     def final_poses(self) -> np.ndarray:
         """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""
@@ -127,6 +129,8 @@ class Pipeline:
             pts, inten = pts[:0], None
         kf = self.result.store.add(deskewed.scan.index, odom.T_world_scan, pts, inten,
                                    deskewed.scan.stamp_s)
+        if len(kf.points):
+            self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
         if self.backend is not None:
             t0 = time.perf_counter()
             self.backend.add_keyframe(kf.id, kf.T_world_kf_odom)
@@ -155,6 +159,7 @@ class Pipeline:
     def finish(self) -> RunResult:
         """Wait for the loop worker, solve the full graph, and return the run's result."""
         r = self.result
+        r.refined_scans = (self.odometry.n_refined, self.odometry.n_refine_refused)
         if self.adaptive is None:  # no scan at all
             self.start(adapt.auto_values(self.cfg, None))
         if self.backend is not None:
