@@ -354,6 +354,9 @@ class WorldParams:
     # The road (and its terrain) goes on straight this far past the ends of the given poses, and
     # simulate_sequence lines this much of the input path before and after the simulated stretch.
     extend_m: float = 80.0
+    # Street furniture (cars, poles, trees, bushes, clutter) besides the facades; False leaves a
+    # street of buildings only (the facades are the same: they are placed first).
+    objects: bool = True
 
 
 @dataclass
@@ -532,6 +535,8 @@ class _Builder:
 
     def build(self) -> None:
         self.facades()
+        if not self.p.objects:
+            return
         self.along((4.0, 12.0), self.car)
         self.along((12.0, 35.0), self.pole)
         self.along((8.0, 25.0), self.tree)

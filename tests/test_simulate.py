@@ -17,8 +17,10 @@ from lidar_slam.io.trajectory import (
 )
 from lidar_slam.o3d import o3d
 from lidar_slam.simulate import (
+    CLASSES,
     SENSORS,
     PoseInterpolator,
+    WorldParams,
     build_world,
     load_kitti_truth,
     place_on_terrain,
@@ -161,6 +163,27 @@ def test_simulate_terrain_follows_a_slope():
     pitch = np.degrees(np.arcsin(sim[mid, 2, 0]))  # x axis climbs with the road
     np.testing.assert_allclose(pitch, np.degrees(np.arctan(0.05)), atol=0.3)
     np.testing.assert_allclose(np.linalg.det(sim[:, :3, :3]), 1.0, atol=1e-9)
+
+
+def test_simulate_street_of_buildings_only_keeps_the_same_facades():
+    stamps, poses = straight(60, speed_mps=10.0)
+    full = build_world(poses, SMALL, seed=3)
+    bare = build_world(poses, SMALL, seed=3, params=WorldParams(objects=False))
+    assert {c for c, n in bare.n_objects.items() if n} == {"facade"}
+    assert bare.n_objects["facade"] == full.n_objects["facade"] > 0
+    assert sum(n for c, n in full.n_objects.items() if c != "facade") > 0
+    # Rays that hit a facade in the full world hit it at the same range in the bare one.
+    sim = place_on_terrain(poses, full.terrain, SMALL.mount_height_m)
+    az = np.radians(np.arange(0, 360, 2.0))
+    dirs = np.c_[np.cos(az), np.sin(az), np.zeros_like(az)]
+    origins = np.repeat(sim[::10, :3, 3], len(az), axis=0)
+    d = np.tile(dirs, (len(sim[::10]), 1))
+    a, b = full.cast(origins, d), bare.cast(origins, d)
+    facade = a["class"] == CLASSES.index("facade")
+    assert facade.sum() > 50
+    np.testing.assert_allclose(a["t_hit"][facade], b["t_hit"][facade], atol=1e-4)
+    assert set(np.unique(b["class"][np.isfinite(b["t_hit"])])) <= {CLASSES.index("ground"),
+                                                                   CLASSES.index("facade")}
 
 
 def test_simulate_sensor_models():
