@@ -60,7 +60,9 @@ class OdometryConfig(_Section):
     # still by the rings the beams draw on the ground, which a plane match slides along (sim
     # 07, braking from 4 m/s: 3.4 deg and 2 m lost in 25 scans). A refinement that moves the
     # pose by more than refine_max_correction_m or _deg is not taken. 0: off (kiss-icp alone).
-    refine_below_mps: NonNegative = 3.0
+    # 5 m/s: there kiss-icp's speed starts to fall short of the truth (sim 07: -6 % at 5 m/s, -25 %
+    # at 3 m/s, -65 % at 2 m/s; docs/benchmarks/2026-12-02-slow-odometry.md).
+    refine_below_mps: NonNegative = 5.0
     refine_keyframes: Count = 4
     refine_voxel_m: Positive | None = None
     refine_max_correspondence_m: Positive = 1.0
