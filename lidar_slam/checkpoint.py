@@ -143,10 +143,15 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         fh.truncate(meta["deviations"] * 16 * 8)
     pipe.odometry.restore({k[4:]: v for k, v in a.items() if k.startswith("odo_")}, deviations)
     r.store.truncate(meta["keyframes"])
-    for kf_id in range(max(0, len(r.store) - pipe.cfg.odometry.refine_keyframes), len(r.store)):
-        kf = r.store.get(kf_id)  # the slow-scan refinement's target, as the run had it
+    anchors = []  # the slow-scan refinement's target, as the run had it: the last non-empty
+    for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first
+        if len(anchors) == pipe.cfg.odometry.refine_keyframes:
+            break
+        kf = r.store.get(kf_id)
         if len(kf.points):
-            pipe.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
+            anchors.insert(0, kf)
+    for kf in anchors:
+        pipe.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
     for row in meta["loop_records"]:
         T = row.pop("T_match_query")
         r.loops.append(LoopRecord(**row, T_match_query=None if T is None else np.array(T)))

@@ -28,7 +28,7 @@ def _vec(points: np.ndarray):
     return kp._Vector3dVector(points)
 
 
-REFINE_ITERATIONS = 20  # point-to-plane iterations of a slow scan's refinement (3-6 used)
+REFINE_ITERATIONS = 20  # at most, point-to-plane, per slow scan's refinement
 _INDEX_BITS = 22  # up to 4M points per scan
 _INDEX_MASK = np.uint64((1 << _INDEX_BITS) - 1)
 

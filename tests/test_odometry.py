@@ -58,3 +58,46 @@ def test_slow_scans_refined_against_keyframes_keep_the_turn_kiss_icp_loses(kitti
     assert n_off == 0 and n_on >= 25
     assert off_deg > 1.5 and off_m > 1.0, (off_m, off_deg)  # the failure is still there
     assert on_deg < 0.5 and on_m < 0.3, (on_m, on_deg)
+
+
+@pytest.mark.shared_data
+def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
+    """A checkpoint taken at a keyframe in the middle of a slow stretch, restored into a fresh
+    pipeline, continues with the same refinement target: every later pose bit for bit equal."""
+    from lidar_slam import checkpoint, pipeline
+    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+
+    kt = load_kitti_truth(kitti_gt, 7)
+    simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "seq", start=636,
+                      n_scans=30, Tr_cam_lidar=kt.Tr_cam_lidar)
+    cfg = load_config(overrides={"loop": {"enabled": False},
+                                 "odometry": {"max_num_threads": 1}})
+    scans = list(open_source(tmp_path / "seq").scans())
+
+    full = pipeline.Pipeline(cfg, tmp_path / "full")
+    for s in scans:
+        full.process(s)
+    P_full = full.finish().final_poses()
+    full.close()
+
+    run = tmp_path / "cut"
+    first = pipeline.Pipeline(cfg, run)
+    checkpoint.start_run(run, {"test": 1})
+    k = None
+    for i, s in enumerate(scans):
+        n_kf = len(first.result.store)
+        first.process(s)
+        if i >= 10 and len(first.result.store) != n_kf:  # a keyframe, as the CLI checkpoints
+            checkpoint.save(run, first, first.loops_applied_upto)
+            k = i + 1
+            break
+    assert k is not None and first.odometry.n_refined > 0
+    first.close()
+    resumed = pipeline.Pipeline(cfg, run, resume=True)
+    assert checkpoint.restore(run, resumed) == k
+    for s in scans[k:]:
+        resumed.process(s)
+    res = resumed.finish()
+    resumed.close()
+    assert res.refined_scans[0] > 0
+    np.testing.assert_array_equal(res.final_poses(), P_full)
