@@ -63,7 +63,7 @@ def test_slow_scans_refined_against_keyframes_keep_the_turn_kiss_icp_loses(kitti
 @pytest.mark.shared_data
 def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe in the middle of a slow stretch, restored into a fresh
-    pipeline, continues with the same refinement target: every later pose bit for bit equal."""
+    pipeline, continues with the same refinement target: every later pose within 1e-9."""
     from lidar_slam import checkpoint, pipeline
     from lidar_slam.simulate import load_kitti_truth, simulate_sequence
 
@@ -100,4 +100,6 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     res = resumed.finish()
     resumed.close()
     assert res.refined_scans[0] > 0
-    np.testing.assert_array_equal(res.final_poses(), P_full)
+    # kiss-icp's map comes back point by point, so its sums may run in another order: the
+    # last bits may differ (1e-13 m seen); without the target rebuilt it is centimetres.
+    np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
