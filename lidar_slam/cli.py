@@ -17,11 +17,6 @@ from typing import Optional
 
 import typer
 
-try:  # typer >= 0.2x ships its own copy of click and raises that copy's exceptions
-    from typer import _click as click
-except ImportError:  # older typer runs on the click package
-    import click
-
 from lidar_slam.errors import LidarSlamError
 
 EXIT_BAD_INPUT = 2
@@ -47,25 +42,66 @@ def _exit(message: str, code: int) -> typer.Exit:
     return typer.Exit(code)
 
 
+def _click_exception() -> type[Exception]:
+    """The class of typer's usage errors (click's ClickException), found from typer's public
+    `typer.BadParameter`: typer >= 0.2x raises its own copy of click's exceptions, older typer
+    click's, and neither copy is a public name of typer."""
+    return next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+ClickException = _click_exception()
+
+
+def _internal_error(exc: BaseException) -> int:
+    """An error that is a bug, not bad input: one line naming it and the file that holds the
+    traceback (also on stderr with --verbose), exit code 1."""
+    import tempfile
+    import traceback
+
+    text = "".join(traceback.format_exception(exc))
+    where = ""
+    try:
+        fd, path = tempfile.mkstemp(prefix="lidar-slam-traceback-", suffix=".txt")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        where = f"; traceback in {path}"
+    except OSError:
+        pass
+    if log.isEnabledFor(logging.DEBUG):
+        sys.stderr.write(text)
+    first = (str(exc).strip().splitlines() or [""])[0]
+    typer.echo(f"lidar-slam: error: internal error: {type(exc).__name__}: {first}".rstrip(": ")
+               + f" (a bug: please report it{where})", err=True)
+    return 1
+
+
 class _App(typer.Typer):
     """typer.Typer whose usage errors (a bad option value, a missing argument) are one line on
-    stderr and exit code 2, like every other error, instead of typer's boxed panel."""
+    stderr and exit code 2, like every other error, instead of typer's boxed panel; a bug is
+    one line and exit code 1 (_internal_error), never a traceback on the terminal."""
 
     def __call__(self, *args, **kwargs):
         kwargs.setdefault("prog_name", "lidar-slam")
         try:
             code = super().__call__(*args, standalone_mode=False, **kwargs)
-        except click.exceptions.NoArgsIsHelpError as exc:
-            exc.show()  # the help text, as for --help
+        except typer.Exit as exc:
             sys.exit(exc.exit_code)
-        except click.ClickException as exc:
+        except typer.Abort:
+            typer.echo("lidar-slam: error: aborted", err=True)
+            sys.exit(1)
+        except KeyboardInterrupt:
+            typer.echo("lidar-slam: error: interrupted", err=True)
+            sys.exit(EXIT_INTERRUPTED)
+        except ClickException as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":
+                exc.show()  # the help text, as for --help
+                sys.exit(exc.exit_code)
             where = f" (see {exc.ctx.command_path} --help)" if getattr(exc, "ctx", None) else ""
             message = " ".join(exc.format_message().split()).rstrip(".")
             typer.echo(f"lidar-slam: error: {message}{where}", err=True)
             sys.exit(exc.exit_code)
-        except click.Abort:
-            typer.echo("lidar-slam: error: aborted", err=True)
-            sys.exit(1)
+        except Exception as exc:  # a bug: say so in one line, keep the traceback in a file
+            sys.exit(_internal_error(exc))
         sys.exit(code if isinstance(code, int) else 0)
 
 

@@ -11,15 +11,18 @@ A process by default (`loop.worker: process`): kiss-icp's registration and small
 hold Python's GIL while they run, so a worker *thread* stalls the odometry for as long as each
 verification ICP takes. The worker process reads keyframes from the run folder's store (only
 ids cross the pipe), runs on the CPU time the odometry leaves (SCHED_IDLE; raised to the
-odometry's priority while its backlog is long, see pace()), and ignores Ctrl-C (the main process
-decides when to stop). "thread" and "inline" (in the main flow, for debugging) remain.
+odometry's priority while its backlog is long, see pace()), ignores Ctrl-C and SIGTERM (the main
+process decides when to stop) and dies with the main process (_die_with_parent). "thread" and
+"inline" (in the main flow, for debugging) remain.
 """
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -69,11 +72,43 @@ def _lower_this_threads_priority(idle: bool = False) -> None:
 _DETECTOR = None
 
 
-def _start_process(cfg_json: dict, store_root: str) -> None:
+# Signals that reach a whole process group (Ctrl-C in a terminal; `timeout`, docker stop and
+# batch schedulers send SIGTERM to the group): the main process decides when the run stops and
+# still needs the worker to finish the loops of the frames it keeps, so the worker ignores them.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_CHECK_S = 1.0
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """End this worker process when the run's process ends, however it ends (SIGKILL, a crash):
+    on Linux the kernel sends SIGKILL on the parent's death (prctl PR_SET_PDEATHSIG); a daemon
+    thread that checks the parent every second covers other systems and the moment before the
+    prctl."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(1)
+
+    if os.getppid() != parent_pid:  # the parent died before the prctl
+        os._exit(1)
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _start_process(cfg_json: dict, store_root: str, parent_pid: int) -> None:
     global _DETECTOR
     from lidar_slam.loop.closer import LoopDetector
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    _die_with_parent(parent_pid)
     _lower_this_threads_priority(idle=True)
     _DETECTOR = LoopDetector(SlamConfig(**cfg_json), KeyframeReader(store_root))
 
@@ -131,13 +166,13 @@ class LoopWorker:
             ctx = multiprocessing.get_context("spawn")  # fork is unsafe with TBB threads running
             self._pool = ProcessPoolExecutor(
                 1, mp_context=ctx, initializer=_start_process,
-                initargs=(cfg.model_dump(mode="json"), str(Path(store.root))))
-            # Ctrl-C in a terminal reaches the whole process group. Until its initializer runs
-            # (a second or two of imports) the worker would die of it, and the run lose its
-            # outputs (BrokenProcessPool): start it now with SIGINT blocked, a mask it inherits,
-            # as multiprocessing's resource tracker does. The parent gets a SIGINT sent
-            # meanwhile as soon as it is unblocked.
-            blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+                initargs=(cfg.model_dump(mode="json"), str(Path(store.root)), os.getpid()))
+            # Ctrl-C in a terminal and `timeout` reach the whole process group. Until its
+            # initializer runs (a second or two of imports) the worker would die of them, and
+            # the run lose its outputs (BrokenProcessPool): start it now with both blocked, a
+            # mask it inherits, as multiprocessing's resource tracker does. The parent gets a
+            # signal sent meanwhile as soon as it is unblocked.
+            blocked = signal.pthread_sigmask(signal.SIG_BLOCK, set(STOP_SIGNALS))
             try:
                 self._pool.submit(int)  # spawns the worker process, which idles until needed
             finally:
