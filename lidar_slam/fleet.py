@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,10 @@ OBJECT_STORE_BYTES = 80 * 2**20
 
 class ClusterError(LidarSlamError):
     """Ray is missing, or the cluster cannot be reached."""
+
+
+def _terminate_as_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def ray_installed() -> bool:
@@ -73,6 +78,7 @@ class Fleet:
         self.cap = workers  # jobs in flight at most (embedded: Ray's CPUs already bound them)
         self._pending: dict = {}
         self._started_here = False
+        self._term_before = None  # SIGTERM's handler before ray.init, restored at the end
 
     @property
     def embedded(self) -> bool:
@@ -97,10 +103,11 @@ class Fleet:
                 kwargs["runtime_env"] = {"env_vars": {"PYTHONPATH": path}}
             kwargs["address"] = self.address
             kwargs.pop("include_dashboard")
-        # Ray's daemons start in this process group: with SIGINT blocked while they start (a
-        # mask they inherit), Ctrl-C in a terminal reaches this process only, which writes the
-        # results and then stops Ray in order.
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        # Ray's daemons start in this process group: with SIGINT and SIGTERM blocked while
+        # they start (a mask they inherit), Ctrl-C in a terminal, `timeout` or docker stop
+        # reach this process only, which writes the results and then stops Ray in order.
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        term_before = signal.getsignal(signal.SIGTERM)
         try:
             ray.init(**kwargs)
         except (ConnectionError, TimeoutError, ValueError, RuntimeError) as exc:
@@ -117,6 +124,12 @@ class Fleet:
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         self._started_here = True
+        # ray.init makes SIGTERM end this process at once (sys.exit in the driver, its head
+        # node's processes killed); here it stops the jobs like Ctrl-C, so the results of the
+        # finished ones are written (the caller catches KeyboardInterrupt).
+        if threading.current_thread() is threading.main_thread():
+            self._term_before = term_before
+            signal.signal(signal.SIGTERM, _terminate_as_interrupt)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -129,6 +142,9 @@ class Fleet:
         self._pending = {}
         if self._started_here:
             ray.shutdown()
+        if self._term_before is not None:
+            signal.signal(signal.SIGTERM, self._term_before)
+            self._term_before = None
 
     def map(self, fn: Callable, jobs: list, on_wait: Callable[[set[int]], None] | None = None,
             wait_s: float = 1.0) -> Iterator[JobOutcome]:

@@ -374,3 +374,40 @@ def test_total_row_pools_drift_over_segments_and_ate_over_frames():
     assert total["fps"] == pytest.approx(10.0)  # 100 frames computed now in 10 s
     assert total["status"] == "error" and total["message"] == "2 ok (1 finished earlier), 1 failed"
     assert rows[2].row["message"] == "bad file"  # one line
+
+
+@pytest.mark.cluster
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_to_the_group_stops_an_embedded_batch_and_keeps_its_table(inputs, tmp_path,
+                                                                         sig):
+    """`timeout -s TERM` / Ctrl-C on `batch` with Ray inside it: the signal reaches Ray's
+    processes too. The batch writes its table (finished runs ok, the others to re-run) and
+    exits 130; the same command then finishes the rest. SIGTERM used to kill the batch with
+    no table."""
+    require_ray()
+    out = tmp_path / "B"
+    args = [*inputs[:3], "--workers", 1]
+    proc = launch_batch(args, out, {})
+    try:
+        deadline = time.monotonic() + 300
+        while proc.poll() is None and time.monotonic() < deadline:
+            if (out / "a" / "summary.json").is_file():
+                break
+            time.sleep(0.05)
+        os.killpg(proc.pid, sig)
+        stdout, stderr = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("lidar-slam: error: interrupted;") and "re-run" in last, last
+    rows = {r["sequence"]: r for r in read_table(out)}
+    assert rows["a"]["status"] == "ok", rows
+    assert any("interrupted" in r["message"] for r in rows.values()), rows
+    for name in ("results.md", "results.json"):
+        assert (out / name).is_file(), name
+    again = lidar_slam("batch", *args, "--out", out)
+    assert again.returncode == 0, again.stderr
+    assert [r["status"] for r in read_table(out)] == ["ok"] * 4
