@@ -89,6 +89,7 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
     constraints = pipe.backend.constraints if pipe.backend is not None else []
     meta = {"frames": len(r.indices), "keyframes": len(r.store), "deviations": n_dev,
             "loops_applied_upto": loops_applied_upto, "skipped_empty": r.skipped_empty,
+            "skipped_small": r.skipped_small,
             "deskew": pipe.deskew.state(), "seconds": r.seconds, "adaptive": pipe.adaptive,
             "loop_records": [_record_json(x) for x in r.loops]}
     arrays = {
@@ -132,6 +133,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.odom_poses = list(a["odom_poses"])
     r.frame_kf = [int(k) for k in a["frame_kf"]]
     r.skipped_empty = meta["skipped_empty"]
+    r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]
     pipe.start(meta["adaptive"])
     if meta["frames"]:

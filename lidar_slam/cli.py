@@ -409,7 +409,8 @@ def _nothing_written(end: _LoopEnd, interrupted: bool, out: Path, data: Path, fr
     if interrupted:
         return _fail("interrupted before the first scan; nothing written", EXIT_INTERRUPTED)
     return _fail(f"{data}: no valid points in any of the {frames} scans read (all empty, NaN, "
-                 f"or outside data.min_range_m..max_range_m {cfg.data.min_range_m:g}.."
+                 f"fewer than data.min_points {cfg.data.min_points}, or outside "
+                 f"data.min_range_m..max_range_m {cfg.data.min_range_m:g}.."
                  f"{cfg.data.max_range_m:g} m); nothing written")
 
 
@@ -482,7 +483,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                              stop, _Progress(label, total, done) if progress else _NoProgress())
         with stop.deferred():  # a signal now waits until the outputs are written
             frames = len(pipe.result.indices)
-            if frames == pipe.result.skipped_empty:  # no frame, or not one valid point
+            skipped = pipe.result.skipped_empty + pipe.result.skipped_small
+            if frames == skipped:  # no frame, or no scan with enough valid points
                 pipe.close()
                 _discard_run(out, created)
                 raise _nothing_written(end, stop.received, out, data, frames, cfg)

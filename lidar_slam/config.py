@@ -28,6 +28,10 @@ class _Section(BaseModel):
 class DataConfig(_Section):
     min_range_m: NonNegative = 0.0
     max_range_m: Positive = 100.0
+    # A scan with fewer points than this after the range crop (one per half odometry voxel) is
+    # not registered but skipped like an empty one (its pose predicted, a warning, counted in
+    # summary.json): ICP on a handful of points settles anywhere and drags the map with it.
+    min_points: NonNegativeInt = 100
     # Deskew with per-point times (constant velocity) when the scans carry them. Done once, here.
     deskew: bool = True
     # Deskew every point of every scan (slow; for comparison): by default only the points used,

@@ -66,7 +66,8 @@ class VoxelSelector:
 class OdometryResult:
     """One scan's odometry. T_world_scan: the pose at the scan's stamp; T_world_ref: at the
     instant the scan was registered (the middle of its sweep when deskewed); T_ref_stamp links
-    the two. registered: False for a scan with no point in range (its pose is the prediction).
+    the two. registered: False for a scan with too few points in range (data.min_points; its pose
+is the prediction).
     T_world_first: set once, on the second registered scan: frame 0's pose moved to its stamp,
     which needs the first motion estimate."""
 
@@ -97,6 +98,7 @@ class Odometry:
         self.last_pose = np.eye(4)
         self.last_delta = np.eye(4)  # T_prev_curr, the constant-velocity prediction
         self.n_registered = 0
+        self.last_n_points = 0  # points the last scan had after crop and selection
         self._last_ref_s = 0.0  # reference instant (from the stamp) of the last registered scan
         self._first_ref_s = 0.0
         # Model deviations fed to the adaptive threshold since the last take_deviations(): its
@@ -147,7 +149,8 @@ class Odometry:
     def register(self, points: np.ndarray, selected: bool = False, refine: bool = False
                  ) -> np.ndarray | None:
         """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
-        (and no state change) when no point lies in range. selected: the points are already
+        (and no state change) when fewer than data.min_points are left after the range crop and
+        the half-voxel selection (last_n_points says how many). selected: the points are already
         cropped and one per voxel of half the voxel size (see DeskewedScan). refine: refine the
         pose against the last keyframes' clouds (when there are any)."""
         if selected:
@@ -155,8 +158,9 @@ class Odometry:
         else:
             cropped = self._crop._preprocess(_vec(points), np.zeros(0), np.eye(4))
             frame_down = kp._voxel_down_sample(cropped, self.voxel_size_m * 0.5)
-        if len(frame_down) == 0:
-            return None
+        self.last_n_points = len(frame_down)
+        if len(frame_down) < max(1, self.cfg.data.min_points):
+            return None  # too few to register: no state change, the caller predicts
         source = kp._voxel_down_sample(frame_down, self.voxel_size_m * 1.5)
         sigma = self._threshold._compute_threshold()
         initial_guess = self.last_pose @ self.last_delta

@@ -157,6 +157,7 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
             summary["backend_final_init"] = result.backend_init
     summary["peak_rss_mb"] = peak_rss_mb()
     summary["skipped_empty_scans"] = result.skipped_empty
+    summary["skipped_small_scans"] = result.skipped_small
     summary["odometry_refined_scans"], summary["odometry_refine_refused"] = result.refined_scans
     summary.update(extra or {})
     write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")

@@ -36,6 +36,7 @@ class RunResult:
     kf_poses: dict[int, np.ndarray] = field(default_factory=dict)  # final T_world_kf
     loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
     skipped_empty: int = 0
+    skipped_small: int = 0  # scans with fewer than data.min_points points in range
     graph: object | None = None  # the keyframe PoseGraph when loops are on (for graph.g2o)
     seconds: dict[str, float] = field(default_factory=lambda: {"odometry": 0.0, "loops": 0.0})
     loop_update_s: list = field(default_factory=list)  # (keyframe, s) of each loop's update
@@ -100,8 +101,16 @@ class Pipeline:
         deskewed = self.deskew(scan, self.odometry.last_delta)
         odom = self.odometry.step(deskewed)
         if not odom.registered:
-            log.warning("%s: empty scan after cropping, skipped (pose predicted)", scan.source)
-            r.skipped_empty += 1
+            n = self.odometry.last_n_points
+            if n == 0:
+                log.warning("%s: empty scan after cropping, skipped (pose predicted)",
+                            scan.source)
+                r.skipped_empty += 1
+            else:
+                log.warning("%s: %d points after cropping (data.min_points: %d), too few to "
+                            "register: skipped (pose predicted)", scan.source, n,
+                            self.cfg.data.min_points)
+                r.skipped_small += 1
         if odom.T_world_first is not None:
             r.odom_poses[0] = odom.T_world_first
         r.seconds["odometry"] += time.perf_counter() - t0
