@@ -181,6 +181,7 @@ class _StopSignals:
 
     def __init__(self):
         self.received = False
+        self.name = ""  # the first signal's name (SIGINT, SIGTERM), for summary.json
         self._deferring = False
         self._old: dict = {}
 
@@ -188,6 +189,7 @@ class _StopSignals:
         if self.received and not self._deferring:
             raise KeyboardInterrupt
         self.received = True
+        self.name = self.name or signal.Signals(signum).name
 
     def __enter__(self):
         try:
@@ -414,6 +416,17 @@ def _nothing_written(end: _LoopEnd, interrupted: bool, out: Path, data: Path, fr
                  f"{cfg.data.max_range_m:g} m); nothing written")
 
 
+def _stop_reason(end: _LoopEnd, stop: _StopSignals) -> str:
+    """Why the scan loop ended, for summary.json: the input's end, a signal, or an error."""
+    if end.internal_error:
+        return "internal error (traceback in error_traceback.txt)"
+    if end.error:
+        return f"input error: {end.error}"
+    if stop.received:
+        return f"interrupted ({stop.name or 'KeyboardInterrupt'})"
+    return "end of input"
+
+
 class _NoProgress:
     """Progress of a run nobody watches (a batch task: `batch` reports per sequence)."""
 
@@ -489,7 +502,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                 _discard_run(out, created)
                 raise _nothing_written(end, stop.received, out, data, frames, cfg)
             result = pipe.finish()
-            status = {"interrupted": stop.received}
+            status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
+                      "frames_requested": total}
             if end.error:
                 status["stopped_by_error"] = end.error
             run_info = {"input": str(data), "input_kind": source.kind, "topic": source.topic,
@@ -737,6 +751,10 @@ def eval_cmd(
     revisit_gap: int = typer.Option(100, "--revisit-gap", min=1,
                                     help="Loop recall: frames between two passes of a place "
                                          "for the second to count as a revisit."),
+    gt_label: Optional[str] = typer.Option(None, "--gt-label",
+                                           help="What GT is called in the plots (default: "
+                                                "'reference' where a README beside GT says it "
+                                                "is not ground truth, else 'ground truth')."),
 ) -> None:
     """KITTI drift (t_err %, r_err deg/100 m), ATE and RPE of EST against GT.
 
@@ -745,7 +763,8 @@ def eval_cmd(
     from lidar_slam.evaluate import format_table, run_eval
 
     metrics = run_eval(est, gt, fmt=fmt.value, calib_path=calib, out_dir=out, loops_csv=loops,
-                       start=start, gt_times=gt_times, revisit_gap=revisit_gap)
+                       start=start, gt_times=gt_times, revisit_gap=revisit_gap,
+                       gt_label=gt_label)
     typer.echo(format_table(metrics))
     if out is not None:
         typer.echo(f"wrote {out}")

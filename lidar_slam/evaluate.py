@@ -17,6 +17,7 @@ import csv
 import dataclasses
 import json
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -242,12 +243,14 @@ def _loop_metrics(loops_csv: str | Path, assoc: Associated, revisit_gap: int
 def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
              calib_path: str | Path | None = None, out_dir: str | Path | None = None,
              loops_csv: str | Path | None = None, start: int | None = None,
-             gt_times: str | Path | None = None, revisit_gap: int = 100) -> dict:
+             gt_times: str | Path | None = None, revisit_gap: int = 100,
+             gt_label: str | None = None) -> dict:
     """All metrics of one trajectory (t_err %, r_err deg/100 m, ATE m, RPE m/deg, loops).
 
     start: the run's --start (ground-truth line of the estimate's first pose, and the offset of
     loops.csv frame numbers); gt_times: stamps of a KITTI ground truth, to pair it with a TUM
-    estimate by time; revisit_gap: frames between two passes for loop recall to count a revisit.
+    estimate by time; revisit_gap: frames between two passes for loop recall to count a revisit;
+    gt_label: what GT is called in the plots and metrics.json (default: truth_label(gt_path)).
     """
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise InputError(out_dir, "--out is a file, not a folder")
@@ -259,6 +262,7 @@ def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
     out = trajectory_metrics(est, gt)
     out["gt_frame"] = "lidar (GT moved with calib Tr)" if calib_path else "as given"
     out["pairing"] = assoc.pairing
+    out["gt_label"] = gt_label = gt_label or truth_label(gt_path)
     pairs, correct = np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=bool)
     if loops_csv is not None:
         loop_out, pairs, correct = _loop_metrics(loops_csv, assoc, revisit_gap)
@@ -267,7 +271,7 @@ def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
         d = Path(out_dir)
         d.mkdir(parents=True, exist_ok=True)
         write_text_atomic(d / "metrics.json", json.dumps(out, indent=2) + "\n")
-        write_plots(d, est, gt, pairs, correct)
+        write_plots(d, est, gt, pairs, correct, gt_label)
     return out
 
 
@@ -309,14 +313,35 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict:
     return out
 
 
+GROUND_TRUTH, REFERENCE = "ground truth", "reference"
+# What a data set's README says of poses that are an odometry or another estimate.
+_NOT_TRUTH = re.compile(r"not\s+(?:survey\s+)?ground[-\s]truth", re.IGNORECASE)
+
+
+def truth_label(gt_path: str | Path) -> str:
+    """What to call the trajectory scored against, in plots and tables: "reference" where the
+    README beside it (or one folder up) says it is not ground truth, else "ground truth"."""
+    folder = Path(gt_path).resolve().parent
+    for where in (folder, folder.parent):
+        for name in ("README.txt", "README.md", "README"):
+            try:
+                text = (where / name).read_text(errors="replace")
+            except OSError:
+                continue
+            return REFERENCE if _NOT_TRUTH.search(text) else GROUND_TRUTH
+    return GROUND_TRUTH
+
+
 def write_plots(out_dir: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray | None = None,
-                correct: np.ndarray | None = None) -> None:
+                correct: np.ndarray | None = None, gt_label: str = GROUND_TRUTH) -> None:
     """The top view (with the scored loops), error against distance and, with 100 m of path or
-    more, drift against segment length, as PNGs in out_dir."""
+    more, drift against segment length, as PNGs in out_dir; gt_label names the trajectory
+    scored against ("ground truth" or "reference")."""
     pairs = np.zeros((0, 2), dtype=np.int64) if pairs is None else pairs
     correct = np.zeros(0, dtype=bool) if correct is None else correct
-    plot_top_view(out_dir / "trajectory_top.png", est, gt, pairs, correct)
-    plot_error_vs_distance(out_dir / "error_vs_distance.png", metrics.error_vs_distance(est, gt))
+    plot_top_view(out_dir / "trajectory_top.png", est, gt, pairs, correct, gt_label)
+    plot_error_vs_distance(out_dir / "error_vs_distance.png", metrics.error_vs_distance(est, gt),
+                           gt_label)
     drift = metrics.kitti_drift(est, gt)
     if drift.by_length:
         plot_drift_vs_length(out_dir / "drift_vs_length.png", drift.by_length)
@@ -337,7 +362,7 @@ def _top_axes(gt: np.ndarray) -> tuple[int, int]:
 
 
 def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray,
-                  correct: np.ndarray) -> None:
+                  correct: np.ndarray, gt_label: str = GROUND_TRUTH) -> None:
     """Top view of GT and estimate (started at the GT's first pose), accepted loops as edges."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -347,7 +372,7 @@ def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray
     fig = Figure(figsize=(7, 7))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    ax.plot(gt[:, i, 3], gt[:, j, 3], "k-", lw=1.2, label="ground truth")
+    ax.plot(gt[:, i, 3], gt[:, j, 3], "k-", lw=1.2, label=gt_label)
     ax.plot(est_w[:, i, 3], est_w[:, j, 3], "b-", lw=1.0, label="estimate")
     for ok, colour, name in ((True, "g", "correct loop"), (False, "r", "wrong loop")):
         sel = pairs[correct == ok]
@@ -359,11 +384,12 @@ def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray
     ax.set_xlabel(f"{'xyz'[i]} [m]")
     ax.set_ylabel(f"{'xyz'[j]} [m]")
     ax.legend(loc="best", fontsize=8)
-    ax.set_title("top view (estimate started at the ground truth's first pose)")
+    ax.set_title(f"top view (estimate started at the {gt_label}'s first pose)")
     _save(fig, path)
 
 
-def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance) -> None:
+def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance,
+                           gt_label: str = GROUND_TRUTH) -> None:
     """Translation error (m) from frame 0 against GT distance travelled (m)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -372,7 +398,7 @@ def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance) -> None:
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     ax.plot(series.distance_m, series.trans_err_m, "b-", lw=1.0)
-    ax.set_xlabel("distance travelled along the ground truth [m]")
+    ax.set_xlabel(f"distance travelled along the {gt_label} [m]")
     ax.set_ylabel("translation error [m]")
     ax.set_title("position error, both trajectories expressed in their first pose")
     ax.grid(True, alpha=0.3)
@@ -454,7 +480,7 @@ def format_table(m: dict) -> str:
             digits = 4 if unit in ("m", "deg") and abs(value) < 1 else 3
             text = f"{value:.{digits}f} {unit}".rstrip()
         lines.append(f"{_LABELS[key]:<34} {text}")
-    for key in ("pairing", "note", "warning"):
+    for key in ("gt_label", "pairing", "note", "warning"):
         if m.get(key):
             lines.append(f"{key:<34} {m[key]}")
     if "loops_accepted" in m:

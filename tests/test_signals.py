@@ -68,8 +68,10 @@ def _group_alive(pgid: int) -> list[int]:
     return alive
 
 
-def assert_complete_interrupted_run(out: Path, proc: subprocess.Popen, err: str) -> None:
-    """Exit 130, no traceback, every output present and consistent with summary.json."""
+def assert_complete_interrupted_run(out: Path, proc: subprocess.Popen, err: str,
+                                    sig: signal.Signals) -> None:
+    """Exit 130, no traceback, every output present and consistent with summary.json, which
+    names the signal."""
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "BrokenProcessPool" not in err, err
     assert err.strip().splitlines()[-1].startswith("lidar-slam: error: interrupted;"), err
@@ -77,6 +79,8 @@ def assert_complete_interrupted_run(out: Path, proc: subprocess.Popen, err: str)
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["interrupted"] is True
+    assert summary["stopped"] == f"interrupted ({sig.name})"
+    assert summary["frames_requested"] == 71
     frames = summary["frames"]
     assert 1 <= frames < 71
     assert len(read_kitti_poses(out / "poses_kitti.txt")) == frames
@@ -97,7 +101,7 @@ def test_a_signal_to_the_process_group_keeps_every_output(tmp_path, sig):
     _wait_for_lines(proc, out / "odometry_kitti.txt", 2)
     os.killpg(proc.pid, sig)
     _, err = proc.communicate(timeout=120)
-    assert_complete_interrupted_run(out, proc, err)
+    assert_complete_interrupted_run(out, proc, err, sig)
     assert _group_alive(proc.pid) == []
 
 
@@ -109,7 +113,7 @@ def test_timeout_command_keeps_every_output(tmp_path):
     _wait_for_lines(proc, out / "odometry_kitti.txt", 2)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
-    assert_complete_interrupted_run(out, proc, err)
+    assert_complete_interrupted_run(out, proc, err, signal.SIGTERM)
 
 
 def test_the_loop_worker_dies_with_a_killed_run(tmp_path):

@@ -62,3 +62,54 @@ def test_min_points_is_a_setting_and_a_run_without_enough_is_one_line(tmp_path):
     proc = lidar_slam("run", SAMPLE, "--out", tmp_path / "o", "--config", cfg, "--n-scans", 5)
     assert proc.returncode == 2, proc.stderr
     assert "fewer than data.min_points 100000" in proc.stderr.strip().splitlines()[-1]
+
+
+def test_a_run_stopped_by_a_bad_scan_says_why_in_its_summary(tmp_path):
+    """A .bin cut short mid-sequence stops the run there (frames so far written, exit 2); the
+    summary used to say only `interrupted: false`. It now says why and how far it got."""
+    seq = tmp_path / "seq"
+    shutil.copytree(SAMPLE, seq)
+    bad = seq / "velodyne" / "000010.bin"
+    bad.write_bytes(bad.read_bytes()[:1000])
+    proc = lidar_slam("run", seq, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "000010.bin" in last and "not a multiple of 16" in last and "stopped there" in last
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 10 and summary["frames_requested"] == 71
+    assert summary["interrupted"] is False
+    assert summary["stopped"].startswith("input error: ") and "000010.bin" in summary["stopped"]
+    done = lidar_slam("run", SAMPLE, "--out", tmp_path / "ok", "--no-loops", "--n-scans", 3)
+    assert done.returncode == 0, done.stderr
+    assert json.loads((tmp_path / "ok" / "summary.json").read_text())["stopped"] == \
+        "end of input"
+
+
+def test_eval_calls_a_reference_a_reference(tmp_path, ouster_loop, kitti16):
+    """The Ouster set's README says its poses are a reference odometry, not ground truth: the
+    eval table, metrics.json and plots say "reference" (they said "ground truth")."""
+    poses = ouster_loop / "poses.txt"
+    proc = lidar_slam("eval", poses, poses, "--out", tmp_path / "e")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "e" / "metrics.json").read_text())["gt_label"] == "reference"
+    assert any(ln.startswith("gt_label") and ln.endswith("reference")
+               for ln in proc.stdout.splitlines()), proc.stdout
+    assert (tmp_path / "e" / "trajectory_top.png").is_file()
+    kitti = lidar_slam("eval", kitti16 / "poses.txt", kitti16 / "poses.txt")
+    assert "ground truth" in kitti.stdout
+    named = lidar_slam("eval", poses, poses, "--gt-label", "BALM initial poses")
+    assert "BALM initial poses" in named.stdout
+
+
+def test_plots_take_the_label(tmp_path, monkeypatch):
+    from lidar_slam import evaluate
+
+    seen = []
+    real = evaluate.plot_top_view
+    monkeypatch.setattr(evaluate, "plot_top_view",
+                        lambda *a, **k: (seen.append(a[-1]), real(*a, **k)))
+    T = np.tile(np.eye(4), (5, 1, 1))
+    T[:, 0, 3] = np.arange(5.0)
+    T[:, 1, 3] = np.arange(5.0) ** 2
+    evaluate.write_plots(tmp_path, T, T, gt_label="reference")
+    assert seen == ["reference"]
