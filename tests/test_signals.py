@@ -57,7 +57,18 @@ def _wait_for_worker(proc: subprocess.Popen, timeout_s: float = 120) -> psutil.P
     return None
 
 
-def _group_alive(pgid: int) -> list[int]:
+def _group_alive(pgid: int, within_s: float = 10.0) -> list[int]:
+    """Processes of the group still alive after within_s (multiprocessing's resource tracker
+    ends on its own once the run's process has closed its pipe)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        alive = _group_members(pgid)
+        if not alive or time.monotonic() > deadline:
+            return alive
+        time.sleep(0.1)
+
+
+def _group_members(pgid: int) -> list[int]:
     alive = []
     for p in psutil.process_iter(["pid"]):
         try:
