@@ -2,7 +2,8 @@
 
 Per scan:  deskew (motion model) -> track: point-to-plane ICP (small_gicp) against the fixed
 map's clouds around the constant-velocity prediction, kept when the scan's above-ground points
-fit the map and the correction of the prediction is small -> else relocalise: Scan Context
+fit the map and the correction of the prediction is small (for the platform: the map run's own
+poses say how far the prediction misses on it) -> else relocalise: Scan Context
 against the map's keyframes, each candidate verified by the loop-closure ICP gates
 (lidar_slam.loop.verify: a wrong pose is worse than none) -> else lost: the pose is the motion
 model's prediction. The map never grows and no loops are searched, so a frame costs less than
@@ -135,6 +136,34 @@ class LocalMaps:
         return target
 
 
+@dataclass(frozen=True)
+class CorrectionGates:
+    """How far tracking may move a fresh constant-velocity prediction (m, deg), and whether the
+    prediction is good enough for the fine stage alone (predictable)."""
+
+    max_m: float
+    max_deg: float
+    predictable: bool
+
+    @classmethod
+    def for_map(cls, saved_map: SavedMap) -> CorrectionGates:
+        """The localize section's gates, widened to correction_margin x the largest miss of the
+        prediction along the map run's own poses where that is more. The gates were set for a
+        car at 10 Hz; a hand-held sensor at 2 Hz turns up to 40 deg a frame and its prediction
+        misses by up to 29 deg: a correction that size is its normal motion, not a jump, and a
+        gate at 5 deg relocalised every other frame. The map run saw the same kind of motion
+        at the same frame rate, so its poses measure what a correction of normal motion is."""
+        lc = saved_map.cfg.localize
+        miss_m, miss_deg = saved_map.prediction_error_m, saved_map.prediction_error_deg
+        gates = cls(max(lc.max_correction_m, lc.correction_margin * miss_m),
+                    max(lc.max_correction_deg, lc.correction_margin * miss_deg),
+                    miss_m <= lc.max_correction_m and miss_deg <= lc.max_correction_deg)
+        log.info("the map run's motion model missed by up to %.2f m / %.1f deg: tracking may "
+                 "correct the prediction by %.2f m / %.1f deg%s", miss_m, miss_deg, gates.max_m,
+                 gates.max_deg, "" if gates.predictable else ", pulled in coarse every frame")
+        return gates
+
+
 class Localizer:
     """Tracks scans in a saved map, relocalising when tracking is lost; step() per scan."""
 
@@ -155,6 +184,7 @@ class Localizer:
         self.motion_fresh = False
         self._pending: tuple | None = None  # a relocalised frame waiting for the next's motion
         self.stats = LocalizeStats()
+        self.gates = CorrectionGates.for_map(saved_map)
 
     def step(self, scan: Scan) -> list[LocalizedFrame]:
         """Localise one scan; returns the frames whose result is final, in order: usually this
@@ -249,7 +279,9 @@ class Localizer:
         lc = self.cfg.localize
         target = self.maps.around(guess)
         T = guess
-        if not self.motion_fresh:  # the prediction may be off by a frame's motion: pull it in
+        # The prediction may be off by a frame's motion, or by more than the fine stage pulls
+        # in on this platform: pull it in.
+        if not self.motion_fresh or not self.gates.predictable:
             T = target.align(source, T, lc.coarse_correspondence_m)
         T = target.align(source, T, lc.max_correspondence_m)
         correction = inverse(guess) @ T
@@ -257,8 +289,7 @@ class Localizer:
         moved_m = float(np.linalg.norm(correction[:3, 3]))
         turned_deg = float(rotation_angle_deg(correction))
         # Without a fresh motion the prediction may be off by metres: only the fitness gates.
-        off = self.motion_fresh and (moved_m > lc.max_correction_m
-                                     or turned_deg > lc.max_correction_deg)
+        off = self.motion_fresh and (moved_m > self.gates.max_m or turned_deg > self.gates.max_deg)
         if fitness < lc.min_fitness or off:
             log.debug("tracking lost: fitness %.2f, correction %.2f m %.1f deg", fitness,
                       moved_m, turned_deg)

@@ -14,7 +14,8 @@ import numpy as np
 
 from lidar_slam.config import LocalizeConfig, SlamConfig, load_config, overlay_config
 from lidar_slam.errors import InputError
-from lidar_slam.geometry import transform_points
+from lidar_slam.geometry import inverse, rotation_angle_deg, transform_points
+from lidar_slam.io.trajectory import read_tum
 from lidar_slam.keyframes import TABLE_DTYPE, KeyframeReader, check_version
 from lidar_slam.loop import adapt
 from lidar_slam.loop.scan_context import describe
@@ -27,7 +28,9 @@ log = logging.getLogger(__name__)
 class SavedMap:
     """A run's map. T_map_kf (K, 4, 4): final keyframe poses in the map frame (the frame of the
     run's poses_kitti.txt); frame_index (K,): the input frame of each keyframe; counts (K,):
-    points per keyframe cloud; cfg: the run's effective config."""
+    points per keyframe cloud; cfg: the run's effective config. prediction_error_m / _deg: the
+    largest miss of the constant-velocity prediction along the run's own poses (0 when they
+    are not there), see prediction_errors."""
 
     run_dir: Path
     cfg: SlamConfig
@@ -38,6 +41,8 @@ class SavedMap:
     descriptor_file: Path | None
     descriptor_rows: int
     _reader: KeyframeReader
+    prediction_error_m: float = 0.0
+    prediction_error_deg: float = 0.0
 
     def __len__(self) -> int:
         return len(self.T_map_kf)
@@ -87,6 +92,35 @@ class SavedMap:
 
     def close(self) -> None:
         self._reader.close()
+
+
+def prediction_errors(T_world_scan: np.ndarray, stamps_s: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """How far the constant-velocity prediction (the last frame's motion repeated) misses each
+    pose of a trajectory (K, 4, 4) with stamps (K,) s: (metres, degrees) for every frame whose
+    two frame intervals before it agree within 25 % (a dropped frame or a gap in the data says
+    nothing about how the platform moves)."""
+    if len(T_world_scan) < 3:
+        return np.zeros(0), np.zeros(0)
+    dt = np.diff(stamps_s)
+    even = np.flatnonzero(np.abs(dt[1:] - dt[:-1]) <= 0.25 * np.maximum(dt[:-1], 1e-9)) + 2
+    prev, last = T_world_scan[even - 2], T_world_scan[even - 1]
+    miss = inverse(last @ inverse(prev) @ last) @ T_world_scan[even]
+    return np.linalg.norm(miss[:, :3, 3], axis=1), rotation_angle_deg(miss)
+
+
+def _run_prediction_error(root: Path) -> tuple[float, float]:
+    """The largest (m, deg) of prediction_errors along the run's poses_tum.txt, (0, 0) without
+    it or with fewer than 3 evenly spaced frames."""
+    path = root / "poses_tum.txt"
+    if not path.is_file():
+        log.info("%s not found: localisation assumes the motion model predicts well", path)
+        return 0.0, 0.0
+    stamps, poses = read_tum(path)
+    err_m, err_deg = prediction_errors(poses, stamps)
+    if len(err_m) == 0:
+        return 0.0, 0.0
+    return float(err_m.max()), float(err_deg.max())
 
 
 def open_map(run_dir: str | Path, overlay: str | Path | None = None) -> SavedMap:
@@ -140,7 +174,8 @@ def open_map(run_dir: str | Path, overlay: str | Path | None = None) -> SavedMap
     if auto is None or not adapt.covers(cfg, auto):  # (older runs fixed fewer of them)
         auto = {**adapt.auto_values(cfg, reader.get(0).points if n else None), **(auto or {})}
     cfg = adapt.apply(cfg, auto)
+    err_m, err_deg = _run_prediction_error(root)
     return SavedMap(root, cfg, T_map_kf, table["frame_index"].copy(), table["count"].copy(),
                     bool(n) and bool(table["has_intensity"].all()),
                     None if desc is None else kf_dir / desc, int(info.get("descriptor_rows", 0)),
-                    reader)
+                    reader, err_m, err_deg)
