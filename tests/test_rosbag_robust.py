@@ -4,13 +4,17 @@ Scans or the project's own input error)."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import struct
+import tempfile
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, event, example, given, settings
+from hypothesis import strategies as st
 from rosbags.rosbag1 import Reader as Reader1
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
@@ -18,8 +22,8 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_typestore
 
-from lidar_slam.errors import InputError
-from lidar_slam.io.rosbag import RosbagSource
+from lidar_slam.errors import InputError, LidarSlamError
+from lidar_slam.io.rosbag import RosbagSource, decode_pointcloud2
 
 ROS1 = get_typestore(Stores.ROS1_NOETIC)
 ROS2 = get_typestore(Stores.ROS2_HUMBLE)
@@ -55,7 +59,7 @@ def _stamps(n: int = N_CLOUDS) -> list[int]:
 
 
 def write_ros1(path: Path, stamps: list[int], compression: str | None = "lz4",
-               chunk_bytes: int = 300_000) -> Path:
+               chunk_bytes: int = 300_000, n_points: int = 4000) -> Path:
     """A ROS1 bag of clouds with these header stamps (and a small /status topic in between)."""
     writer = Writer1(path)
     if compression:
@@ -66,14 +70,15 @@ def write_ros1(path: Path, stamps: list[int], compression: str | None = "lz4",
         status = writer.add_connection("/status", "std_msgs/msg/String", typestore=ROS1)
         for k, stamp in enumerate(stamps):
             writer.write(clouds, STAMP_NS + k * PERIOD_NS,
-                         ROS1.serialize_ros1(_cloud(k, stamp, ROS1), PC2))
+                         ROS1.serialize_ros1(_cloud(k, stamp, ROS1, n_points), PC2))
             msg = ROS1.types["std_msgs/msg/String"](data=f"scan {k}")
             writer.write(status, STAMP_NS + k * PERIOD_NS + 1,
                          ROS1.serialize_ros1(msg, "std_msgs/msg/String"))
     return path
 
 
-def write_ros2(path: Path, stamps: list[int], storage: str = "mcap", zstd: bool = False) -> Path:
+def write_ros2(path: Path, stamps: list[int], storage: str = "mcap", zstd: bool = False,
+               n_points: int = 4000) -> Path:
     """A ROS2 bag folder (mcap or sqlite3 storage) of clouds with these header stamps."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     writer = Writer2(path, version=9, storage_plugin=plugin)
@@ -83,7 +88,7 @@ def write_ros2(path: Path, stamps: list[int], storage: str = "mcap", zstd: bool 
         clouds = writer.add_connection(TOPIC, PC2, typestore=ROS2)
         for k, stamp in enumerate(stamps):
             writer.write(clouds, STAMP_NS + k * PERIOD_NS,
-                         ROS2.serialize_cdr(_cloud(k, stamp), PC2))
+                         ROS2.serialize_cdr(_cloud(k, stamp, ROS2, n_points), PC2))
     return path
 
 
@@ -314,3 +319,180 @@ def test_start_and_count_number_the_kept_scans_so_a_resumed_run_sees_the_same_on
     assert [s.index for s in source.scans(1, 2)] == [1, 2]
     assert [s.stamp_s for s in source.scans(3, 10)] == [s.stamp_s for s in every[3:]]
     assert list(source.scans(len(every))) == []
+
+
+# --- property tests: any bytes, any PointCloud2 layout, any stamps --------------------------
+# One of two outcomes only: valid Scans, or the project's own error (LidarSlamError); never
+# another exception, never a hang (deadline per example).
+
+FUZZ = settings(max_examples=60, deadline=3000, derandomize=True,
+                suppress_health_check=[HealthCheck.too_slow])
+
+
+def _outcome(path: Path) -> list | None:
+    """The Scans read from path, checked valid, or None when the reader refused it."""
+    try:
+        source = RosbagSource(path)
+        n = len(source)
+        scans = list(source.scans())
+    except LidarSlamError as exc:
+        assert "\n" not in str(exc)
+        event("refused: " + str(exc).split(": ", 1)[1][:40])
+        return None
+    event(f"{len(scans)} scans")
+    assert len(scans) == n and [s.index for s in scans] == list(range(n))
+    stamps = [s.stamp_s for s in scans]
+    assert all(a < b for a, b in itertools.pairwise(stamps))
+    for s in scans:
+        assert s.points.dtype == np.float64 and s.points.ndim == 2 and s.points.shape[1] == 3
+        assert np.isfinite(s.points).all() and np.isfinite(s.stamp_s)
+        if s.point_times is not None:
+            assert s.point_times.shape == (len(s.points),) and np.isfinite(s.point_times).all()
+        if s.intensity is not None:
+            assert s.intensity.shape == (len(s.points),) and s.intensity.dtype == np.float32
+            assert np.isfinite(s.intensity).all()
+    return scans
+
+
+_SMALL_BAGS: dict[str, tuple[str, bytes]] = {}
+ROS2_MCAP_HEADER = b"\x89MCAP0\r\n\x01\x08\x00\x00\x00\x00\x00\x00\x00\x04\x00\x00\x00ros2"
+
+
+def _small_bag(kind: str) -> tuple[str, bytes]:
+    """(file name, bytes) of a 3-cloud bag of 50 points each, written once per test session."""
+    if kind not in _SMALL_BAGS:
+        with tempfile.TemporaryDirectory() as tmp:
+            stamps = _stamps(3)
+            if kind.startswith("ros1"):
+                path = write_ros1(Path(tmp) / "small.bag", stamps, compression=kind[5:] or None,
+                                  chunk_bytes=1000, n_points=50)
+            else:
+                folder = write_ros2(Path(tmp) / "small", stamps, storage=kind[5:], n_points=50)
+                (path,) = [f for f in folder.iterdir() if f.suffix in (".mcap", ".db3")]
+            _SMALL_BAGS[kind] = (path.name, path.read_bytes())
+    return _SMALL_BAGS[kind]
+
+
+@FUZZ
+@example(kind="ros1_bz2", cut=0.833984375, flips=[(0.8323599133680419, b"\x00")])  # bz2 EOF
+@given(kind=st.sampled_from(["ros1_", "ros1_lz4", "ros1_bz2", "ros2_mcap", "ros2_sqlite3"]),
+       cut=st.floats(0.0, 1.0), flips=st.lists(st.tuples(st.floats(0.0, 1.0),
+                                                         st.binary(min_size=1, max_size=8)),
+                                               max_size=4))
+def test_a_damaged_bag_gives_valid_scans_or_an_input_error(kind, cut, flips):
+    name, raw = _small_bag(kind)
+    data = bytearray(raw[:max(1, int(len(raw) * cut))] if cut < 0.999 else raw)
+    for at, junk in flips:
+        pos = int(at * (len(data) - 1))
+        data[pos:pos + len(junk)] = junk
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / name
+        path.write_bytes(bytes(data))
+        _outcome(path)
+
+
+@FUZZ
+@example(suffix=".mcap", prefix=b"\x89MCAP0\r\n", body=b"", footer=False)  # rosbags: ord("")
+@example(suffix=".mcap", prefix=ROS2_MCAP_HEADER, body=bytes(8) + b"\x80", footer=True)  # seek
+@given(suffix=st.sampled_from([".bag", ".mcap", ".db3"]),
+       prefix=st.sampled_from([b"", b"#ROSBAG V2.0\n", b"\x89MCAP0\r\n",
+                               b"\x89MCAP0\r\n\x01\x08\x00\x00\x00\x00\x00\x00\x00\x04\x00\x00\x00ros1",
+                               ROS2_MCAP_HEADER,
+                               b"SQLite format 3\x00"]),
+       body=st.binary(max_size=600), footer=st.booleans())
+def test_random_bytes_after_any_header_give_valid_scans_or_an_input_error(
+        suffix, prefix, body, footer):
+    data = prefix + body + (b"\x02\x14" + bytes(27) + b"\x89MCAP0\r\n" if footer else b"")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"random{suffix}"
+        path.write_bytes(data)
+        _outcome(path)
+
+
+_FIELD_NAMES = ["x", "y", "z", "t", "time", "timestamp", "offset_time", "intensity",
+                "reflectivity", "ring"]
+
+
+@st.composite
+def _pointcloud2(draw):
+    """A PointCloud2 of any layout, mostly decodable: x/y/z (usually), other fields, at any
+    offset and datatype (0 and 9 unknown), a point_step that fits them or not, any height,
+    width and row_step, data of the right length or not, NaN/inf/0 coordinates, any stamp."""
+    field = ROS2.types["sensor_msgs/msg/PointField"]
+    names = draw(st.lists(st.sampled_from(_FIELD_NAMES), max_size=4))
+    if draw(st.integers(0, 9)):
+        names = ["x", "y", "z", *names]
+    def datatype():
+        return draw(st.sampled_from([0, 9]) if draw(st.integers(0, 24)) == 0
+                    else st.sampled_from([7, 7, 7, 8, 1, 2, 3, 4, 5, 6]))
+
+    fields = [field(name=n, offset=draw(st.integers(0, 32)), datatype=datatype(),
+                    count=draw(st.sampled_from([1, 1, 0, 3]))) for n in names]
+    end = max([f.offset + {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 8: 8}.get(f.datatype, 1)
+               for f in fields], default=0)
+    step = draw(st.one_of(st.integers(end, end + 8), st.integers(end, end + 8),
+                          st.integers(0, 48)))
+    height, width = draw(st.sampled_from([1, 1, 2, 3, 0])), draw(st.integers(0, 12))
+    row_step = draw(st.sampled_from([width * step, width * step + draw(st.integers(0, 9)),
+                                     draw(st.integers(0, 200))]))
+    need = max(0, (height - 1) * row_step + width * step)
+    size = draw(st.sampled_from([need, need, need + draw(st.integers(1, 8)),
+                                 max(0, need - draw(st.integers(1, 8))),
+                                 draw(st.integers(0, 400))]))
+    data = np.frombuffer(draw(st.binary(min_size=size, max_size=size)), np.uint8).copy()
+    if size >= 8 and draw(st.booleans()):  # NaNs, infs and zeros where floats may be read
+        floats = data[:size - size % 4].view(np.float32)
+        floats[draw(st.integers(0, len(floats) - 1))::3] = draw(
+            st.sampled_from([np.nan, np.inf, -np.inf, 0.0]))
+    time = ROS2.types["builtin_interfaces/msg/Time"](
+        sec=draw(st.integers(-2**31, 2**31 - 1)), nanosec=draw(st.integers(0, 2**32 - 1)))
+    header = ROS2.types["std_msgs/msg/Header"](stamp=time, frame_id="f")
+    return ROS2.types[PC2](header=header, height=height, width=width, fields=fields,
+                           is_bigendian=draw(st.booleans()), point_step=step, row_step=row_step,
+                           data=data, is_dense=False)
+
+
+@FUZZ
+@given(msgs=st.lists(_pointcloud2(), min_size=1, max_size=3))
+def test_any_pointcloud2_layout_gives_valid_scans_or_an_input_error(msgs):
+    with tempfile.TemporaryDirectory() as tmp:
+        with Writer2(Path(tmp) / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conn = writer.add_connection(TOPIC, PC2, typestore=ROS2)
+            for k, msg in enumerate(msgs):
+                writer.write(conn, STAMP_NS + k, ROS2.serialize_cdr(msg, PC2))
+        _outcome(Path(tmp) / "bag")
+
+
+@settings(max_examples=40, deadline=3000, derandomize=True)
+@given(stamps=st.lists(st.integers(0, 6), min_size=1, max_size=12))
+def test_any_stamps_keep_exactly_the_scans_after_the_last_kept_one(stamps):
+    kept, duplicate, backwards = [], 0, 0
+    for k, t in enumerate(stamps):
+        if kept and t <= stamps[kept[-1]]:
+            duplicate += t == stamps[kept[-1]]
+            backwards += t < stamps[kept[-1]]
+        else:
+            kept.append(k)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_ros2(Path(tmp) / "bag", [STAMP_NS + t * PERIOD_NS for t in stamps],
+                          n_points=5)
+        scans = _outcome(path)
+        notes = RosbagSource(path).input_notes
+    assert [s.stamp_s for s in scans] == [(STAMP_NS + stamps[k] * PERIOD_NS) * 1e-9 for k in kept]
+    assert notes == {"dropped_duplicate_stamps": duplicate, "dropped_backwards_stamps": backwards}
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, 1e300])
+def test_a_cloud_with_non_finite_intensity_is_used_without_intensity(bad):
+    """Found by the layout property: a float64 intensity beyond float32 became inf (and NaN
+    stayed NaN), which the LAS export turns into garbage."""
+    field = ROS2.types["sensor_msgs/msg/PointField"]
+    rec = np.zeros(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f8")])
+    rec["x"], rec["intensity"] = [1, 2, 3, 4], [5, bad, 7, 8]
+    fields = [field(name=n, offset=rec.dtype.fields[n][1], datatype=7 if n != "intensity" else 8,
+                    count=1) for n in rec.dtype.names]
+    msg = _cloud(0, STAMP_NS, n_points=4)
+    msg.fields, msg.point_step, msg.row_step = fields, 20, 80
+    msg.data = rec.view(np.uint8).copy()
+    cloud = decode_pointcloud2(msg)
+    assert cloud.intensity is None and len(cloud.points) == 4

@@ -68,6 +68,13 @@ _BAG_ERRORS = (
     apsw.Error, AssertionError, RuntimeError, MemoryError, OverflowError, struct.error,
     UnicodeDecodeError, OSError,
 )
+# ... and, on damaged bytes, also these (an empty read into ord(), a seek past 2**63, bz2's end
+# of stream, bogus ids): caught where rosbags, the decompressors and the deserializers are
+# called, not around our own decoding, whose bugs they would hide.
+_LEAKS = (TypeError, ValueError, KeyError, IndexError, EOFError)
+
+
+_warned_intensity: list[bool] = []  # once per process, as point_times warns
 
 
 class PointCloud2Error(ValueError):
@@ -78,7 +85,8 @@ class DecodedCloud(NamedTuple):
     """One decoded PointCloud2, invalid returns removed.
 
     points (N,3) float64 m in the message frame; point_times (N,) float64 s relative to the
-    header stamp, or None; intensity (N,) float32 or None; n_dropped = NaN/inf or (0,0,0) returns.
+    header stamp, or None; intensity (N,) float32, or None (none, or not all finite);
+    n_dropped = NaN/inf or (0,0,0) returns.
     """
 
     points: np.ndarray
@@ -121,7 +129,14 @@ def decode_pointcloud2(msg: Any) -> DecodedCloud:
     if tname:
         times = relative_seconds(rec["t"][keep] if n_dropped else rec["t"], header_stamp_ns(msg))
     if iname:
-        intensity = (rec["i"][keep] if n_dropped else rec["i"]).astype(np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, refused below
+            intensity = (rec["i"][keep] if n_dropped else rec["i"]).astype(np.float32)
+        if not np.isfinite(intensity).all():
+            if not _warned_intensity:
+                _warned_intensity.append(True)
+                log.warning("PointCloud2 %s field has NaN/inf values (or beyond float32); such "
+                            "scans are used without intensity", iname)
+            intensity = None
     return DecodedCloud(xyz, times, intensity, n_dropped)
 
 
@@ -314,7 +329,7 @@ class _McapScan(_BagReader):
                                                                             strings.pos)[0]]
             inner = _decompress_prefix(body, compression)
             msgs = list(self._chunk_records(inner, channel_ids, partial=True))
-        except _BAG_ERRORS as exc:
+        except (*_BAG_ERRORS, *_LEAKS) as exc:
             log.debug("%s: the chunk cut off at the end is unreadable (%s)", self.path, exc)
             return
         yield from sorted(msgs, key=lambda m: m[1])
@@ -427,7 +442,7 @@ class _Ros1BagScan(_BagReader):
                         yield from self._record(header, data, topic)
                     if not complete:
                         return
-            except (*_BAG_ERRORS, KeyError) as exc:
+            except (*_BAG_ERRORS, *_LEAKS) as exc:
                 log.debug("%s: records unreadable from offset %d on (%s)", self.path,
                           fh.tell(), exc)
 
@@ -557,7 +572,7 @@ def _recovery_reader(path: Path) -> _BagReader | None:
         return None
     try:
         reader = kinds[suffix](path)
-    except (*_BAG_ERRORS, KeyError) as exc:
+    except (*_BAG_ERRORS, *_LEAKS) as exc:
         log.debug("%s: no message recoverable (%s)", path, exc)
         return None
     return reader if reader.recovered is not None else None
@@ -567,31 +582,47 @@ def _problem(exc: BaseException) -> str:
     return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 
-@contextmanager
-def _open_bag(path: Path) -> Iterator[_BagReader]:
-    """An open bag; a recording cut short gives its complete messages (`recovered` set); the
-    errors of rosbags and of the readers here become InputError naming the file."""
+def _open_reader(path: Path) -> _BagReader:
+    """The reader for a bag: rosbags' AnyReader, ours for ros1-profile mcap, and, when rosbags
+    refuses a recording cut short, ours of its complete messages (`recovered` set)."""
     try:
         if path.is_file() and path.suffix.lower() == ".mcap" and _mcap_profile(path) == "ros1":
-            bag: _BagReader = _McapScan(path)
-        else:
-            try:
-                bag = _AnyBag(path)
-            except _BAG_ERRORS as exc:
-                recovered = _recovery_reader(path)
-                if recovered is None:
-                    raise
-                if recovered.recovered == 0:
-                    recovered.close()
-                    raise InputError(path, "truncated or damaged recording: not one complete "
-                                           f"message in it ({_problem(exc)})") from exc
-                bag = recovered
+            return _McapScan(path)
         try:
-            yield bag
-        finally:
-            bag.close()
+            return _AnyBag(path)
+        except (*_BAG_ERRORS, *_LEAKS) as exc:
+            recovered = _recovery_reader(path)
+            if recovered is None:
+                raise
+            if recovered.recovered == 0:
+                recovered.close()
+                raise InputError(path, "truncated or damaged recording: not one complete "
+                                       f"message in it ({_problem(exc)})") from exc
+            return recovered
+    except (*_BAG_ERRORS, *_LEAKS) as exc:
+        raise InputError(path, f"unreadable or damaged bag ({_problem(exc)})") from exc
+
+
+def _topic_messages(bag: _BagReader, topic: str) -> Iterator[Any]:
+    """The deserializers of a topic's messages, in order (see _LEAKS)."""
+    try:
+        for deserialize, _ in bag.raw_messages(topic):
+            yield deserialize
+    except _LEAKS as exc:
+        raise Ros2ReaderError(f"{type(exc).__name__}: {exc}") from exc
+
+
+@contextmanager
+def _open_bag(path: Path) -> Iterator[_BagReader]:
+    """An open bag; the errors of rosbags and of the readers here become InputError naming
+    the file."""
+    bag = _open_reader(path)
+    try:
+        yield bag
     except _BAG_ERRORS as exc:
         raise InputError(path, f"unreadable or damaged bag ({_problem(exc)})") from exc
+    finally:
+        bag.close()
 
 
 class RosbagSource:
@@ -664,8 +695,8 @@ class RosbagSource:
         duplicate = backwards = n_read = 0
         last = None
         with _open_bag(self.path) as bag:
-            for n_read, (deserialize, _) in enumerate(bag.raw_messages(self.topic), 1):
-                stamp = header_stamp_ns(deserialize())
+            for n_read, deserialize in enumerate(_topic_messages(bag, self.topic), 1):
+                stamp = header_stamp_ns(self._message(n_read - 1, deserialize))
                 if last is not None and stamp <= last:
                     duplicate += stamp == last
                     backwards += stamp < last
@@ -697,14 +728,21 @@ class RosbagSource:
         last = kept[stop - 1]
         i = -1
         with _open_bag(self.path) as bag:
-            for i, (deserialize, _) in enumerate(bag.raw_messages(self.topic)):
+            for i, deserialize in enumerate(_topic_messages(bag, self.topic)):
                 if i > last:
                     break
                 if i in wanted:
-                    yield self._scan(wanted[i], i, deserialize())
+                    yield self._scan(wanted[i], i, self._message(i, deserialize))
         if i < last:
             raise InputError(self.path, f"{self.topic}: message {last} could be read before but "
                                         f"not now (only {i + 1}; damaged bag?)")
+
+    def _message(self, position: int, deserialize: Any) -> Any:
+        try:
+            return deserialize()
+        except (*_BAG_ERRORS, *_LEAKS) as exc:
+            raise InputError(self.path, f"{self.topic} message {position} cannot be "
+                                        f"deserialized ({_problem(exc)})") from exc
 
     def _scan(self, index: int, position: int, msg: Any) -> Scan:
         try:
