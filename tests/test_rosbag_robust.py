@@ -496,3 +496,26 @@ def test_a_cloud_with_non_finite_intensity_is_used_without_intensity(bad):
     msg.data = rec.view(np.uint8).copy()
     cloud = decode_pointcloud2(msg)
     assert cloud.intensity is None and len(cloud.points) == 4
+
+
+def test_lidar_slam_run_on_a_cut_mcap_runs_its_complete_cloud_or_says_why_in_one_line(
+        rosbags_dir, tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    raw = (rosbags_dir / OUSTER_MCAP).read_bytes()
+    outcomes = []
+    for mb in (1.0, 2.0):
+        cut = tmp_path / f"cut{mb}.mcap"
+        cut.write_bytes(raw[:int(mb * 1e6)])
+        proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(cut), "--out",
+                               str(tmp_path / f"out{mb}"), "--no-loops"], capture_output=True,
+                              text=True, timeout=300, check=False)
+        outcomes.append((proc.returncode, [ln for ln in proc.stderr.splitlines() if ln.strip()]))
+    (rc, lines), (rc_ok, _) = outcomes
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in lines[0], lines
+    assert "truncated recording" in lines[0] and "none on /os1_cloud_node/points" in lines[0]
+    assert rc_ok == 0
+    summary = json.loads((tmp_path / "out2.0" / "summary.json").read_text())
+    assert summary["input_kind"] == "rosbag" and summary["frames"] == 1

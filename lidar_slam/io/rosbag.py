@@ -652,13 +652,13 @@ class RosbagSource:
         self._count = topics[self.topic][1]
         self._notes: dict[str, int] = {}
         if recovered is not None:
+            if self._count == 0:  # the error says it all: no warning line before it
+                raise InputError(self.path, f"truncated recording (no footer/index): recovered "
+                                            f"{recovered} complete messages, none on {self.topic}")
             self._notes["recovered_truncated_messages"] = self._count
             log.warning("%s: truncated recording (no footer/index): recovered %d complete "
                         "messages, %d of them on %s", self.path, recovered, self._count,
                         self.topic)
-            if self._count == 0:
-                raise InputError(self.path, f"truncated recording: not one complete message "
-                                            f"on {self.topic}")
         if self._count == 0:
             raise InputError(self.path, f"topic {self.topic} has no messages")
         self._kept: list[int] | None = None  # topic positions of the kept messages
