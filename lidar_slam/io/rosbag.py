@@ -2,8 +2,12 @@
 
 Containers: a ROS1 `.bag`, a ROS2 bag folder (metadata.yaml with .db3 or .mcap storage), and a
 standalone `.mcap` of profile "ros2" (all through rosbags' AnyReader) or "ros1" (which rosbags'
-MCAP reader rejects, so `_Ros1Mcap` below walks the records and deserializes with a rosbags
+MCAP reader rejects, so `_McapScan` below walks the records and deserializes with a rosbags
 typestore built from the file's ros1msg schemas).
+
+A recording cut short (a crashed recorder: no mcap footer, no ROS1 index, a .db3 shorter than
+its header says), which rosbags refuses, is read up to its last complete message by the
+sequential readers here (`_McapScan`, `_Ros1BagScan`, `_Db3Scan`), with one warning.
 
 Time convention of the Scans produced here:
 - `Scan.stamp_s` is the PointCloud2 header stamp in seconds (not the bag's receive time).
