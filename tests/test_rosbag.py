@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from lidar_slam.errors import InputError
@@ -22,8 +23,8 @@ PC2 = "sensor_msgs/msg/PointCloud2"
 TOPIC = "/os1_cloud_node/points"
 MCAP1 = "ouster_os1_64_points_ros1_profile.mcap"
 CONVERTED = ("ouster_os1_64_points.bag", "ouster_os1_64_points_ros2_sqlite3",
-             "ouster_os1_64_points_ros2_mcap", "ouster_os1_64_points_ros2_mcap/"
-             "ouster_os1_64_points_ros2_mcap.mcap")
+             "ouster_os1_64_points_ros2_mcap",
+             "ouster_os1_64_points_ros2_mcap/ouster_os1_64_points_ros2_mcap.mcap")
 STAMP_NS = 1_588_075_038_629_915_872
 DT = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
 
@@ -146,7 +147,8 @@ def test_rosbag_without_pointcloud2_names_the_file_and_topics(rosbags_dir):
 
 def test_rosbag_with_two_cloud_topics_needs_a_topic(tmp_path):
     msg = _cloud_msg(_rec(_points()), store=ROS1)
-    path = _write_ros1_bag(tmp_path / "two.bag", {"/front": [msg], "/rear": [msg, msg]})
+    later = _cloud_msg(_rec(_points()), store=ROS1, stamp_ns=STAMP_NS + 100_000_000)
+    path = _write_ros1_bag(tmp_path / "two.bag", {"/front": [msg], "/rear": [msg, later]})
     with pytest.raises(InputError, match="--topic") as err:
         RosbagSource(path)
     assert str(path) in str(err.value) and "/front" in str(err.value) and "/rear" in str(err.value)
@@ -164,9 +166,10 @@ def test_rosbag_unknown_topic(rosbags_dir):
         RosbagSource(path, topic="/os1_cloud_node/imu")
 
 
-@pytest.mark.parametrize("name", [CONVERTED[0], MCAP1])
-def test_rosbag_truncated_bag_is_an_input_error(rosbags_dir, tmp_path, name):
-    src = rosbags_dir / name if name == MCAP1 else rosbags_dir / "converted_by_rosbags" / name
+def test_rosbag_truncated_bag_is_an_input_error(rosbags_dir, tmp_path):
+    """Cut in half, the first of its two clouds is not complete (the cut mcap: see
+    test_rosbag_robust.py)."""
+    src = rosbags_dir / "converted_by_rosbags" / CONVERTED[0]
     path = tmp_path / src.name
     path.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
     with pytest.raises(InputError, match="damaged") as err:
@@ -336,7 +339,7 @@ def _cli_one_line_error(path, *extra):
 
     proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(path), "--out",
                            str(Path(str(path)).parent / "out"), "--no-loops", *extra],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, check=False)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert str(path) in lines[0]
@@ -372,7 +375,8 @@ def test_rosbag_containers_give_identical_runs(rosbags_dir, tmp_path):
         out = tmp_path / f"o{i}"
         proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run",
                                str(rosbags_dir / rel), "--out", str(out), "--no-loops",
-                               "--n-scans", "1"], capture_output=True, text=True, timeout=300)
+                               "--n-scans", "1"], capture_output=True, text=True, timeout=300,
+                              check=False)
         assert proc.returncode == 0, proc.stderr
         outs.append((out / "map.ply").read_bytes())
         summary = json.loads((out / "summary.json").read_text())  # the topic picked, reported

@@ -2,8 +2,12 @@
 
 Containers: a ROS1 `.bag`, a ROS2 bag folder (metadata.yaml with .db3 or .mcap storage), and a
 standalone `.mcap` of profile "ros2" (all through rosbags' AnyReader) or "ros1" (which rosbags'
-MCAP reader rejects, so `_Ros1Mcap` below walks the records and deserializes with a rosbags
+MCAP reader rejects, so `_McapScan` below walks the records and deserializes with a rosbags
 typestore built from the file's ros1msg schemas).
+
+A recording cut short (a crashed recorder: no mcap footer, no ROS1 index, a .db3 shorter than
+its header says), which rosbags refuses, is read up to its last complete message by the
+sequential readers here (`_McapScan`, `_Ros1BagScan`, `_Db3Scan`), with one warning.
 
 Time convention of the Scans produced here:
 - `Scan.stamp_s` is the PointCloud2 header stamp in seconds (not the bag's receive time).
@@ -20,16 +24,22 @@ from __future__ import annotations
 import logging
 import struct
 import sys
+from bz2 import BZ2Decompressor
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
+from io import BytesIO
 from pathlib import Path
 from typing import Any, BinaryIO, NamedTuple
 
 import apsw
 import numpy as np
+from lz4.frame import LZ4FrameDecompressor
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
+from rosbags.rosbag1.reader import Header as Ros1Header
+from rosbags.rosbag1.reader import RecordType, decompressors
+from rosbags.rosbag1.reader import normalize as ros1_normalize
 from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.rosbag2.storage_mcap import decompress as mcap_decompress
 from rosbags.serde import SerdeError
@@ -39,9 +49,9 @@ from rosbags.typesys.msg import normalize_msgtype
 from lidar_slam.errors import InputError
 
 if sys.version_info >= (3, 14):
-    from compression.zstd import ZstdError
+    from compression.zstd import ZstdDecompressor, ZstdError
 else:  # rosbags depends on the backport below 3.14
-    from backports.zstd import ZstdError
+    from backports.zstd import ZstdDecompressor, ZstdError
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import INTENSITY_FIELDS, TIME_FIELDS
 from lidar_slam.types import Scan
@@ -62,6 +72,13 @@ _BAG_ERRORS = (
     apsw.Error, AssertionError, RuntimeError, MemoryError, OverflowError, struct.error,
     UnicodeDecodeError, OSError,
 )
+# ... and, on damaged bytes, also these (an empty read into ord(), a seek past 2**63, bz2's end
+# of stream, bogus ids): caught where rosbags, the decompressors and the deserializers are
+# called, not around our own decoding, whose bugs they would hide.
+_LEAKS = (TypeError, ValueError, KeyError, IndexError, EOFError)
+
+
+_warned_intensity: list[bool] = []  # once per process, as point_times warns
 
 
 class PointCloud2Error(ValueError):
@@ -72,7 +89,8 @@ class DecodedCloud(NamedTuple):
     """One decoded PointCloud2, invalid returns removed.
 
     points (N,3) float64 m in the message frame; point_times (N,) float64 s relative to the
-    header stamp, or None; intensity (N,) float32 or None; n_dropped = NaN/inf or (0,0,0) returns.
+    header stamp, or None; intensity (N,) float32, or None (none, or not all finite);
+    n_dropped = NaN/inf or (0,0,0) returns.
     """
 
     points: np.ndarray
@@ -115,7 +133,14 @@ def decode_pointcloud2(msg: Any) -> DecodedCloud:
     if tname:
         times = relative_seconds(rec["t"][keep] if n_dropped else rec["t"], header_stamp_ns(msg))
     if iname:
-        intensity = (rec["i"][keep] if n_dropped else rec["i"]).astype(np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, refused below
+            intensity = (rec["i"][keep] if n_dropped else rec["i"]).astype(np.float32)
+        if not np.isfinite(intensity).all():
+            if not _warned_intensity:
+                _warned_intensity.append(True)
+                log.warning("PointCloud2 %s field has NaN/inf values (or beyond float32); such "
+                            "scans are used without intensity", iname)
+            intensity = None
     return DecodedCloud(xyz, times, intensity, n_dropped)
 
 
@@ -125,7 +150,7 @@ def _records(msg: Any, wanted: dict[str, Any]) -> np.ndarray:
     height, width = int(msg.height), int(msg.width)
     order = ">" if msg.is_bigendian else "<"
     formats, offsets = [], []
-    for key, f in wanted.items():
+    for f in wanted.values():
         code = _DATATYPES.get(int(f.datatype))
         if code is None:
             raise PointCloud2Error(f"field {f.name!r} has unknown datatype {f.datatype}")
@@ -150,8 +175,54 @@ def _records(msg: Any, wanted: dict[str, Any]) -> np.ndarray:
     return grid.reshape(-1)
 
 
-class _Ros1Mcap:
-    """Reader for MCAP files of profile "ros1" (rosbags' MCAP reader accepts only "ros2")."""
+def _decompress_prefix(data: bytes, compression: str) -> bytes:
+    """As much of a cut-off compressed chunk as decodes (the blocks before the cut)."""
+    if compression in ("", "none"):
+        return data
+    if compression == "lz4":
+        return LZ4FrameDecompressor().decompress(data)
+    if compression == "zstd":
+        return ZstdDecompressor().decompress(data)
+    if compression == "bz2":
+        return BZ2Decompressor().decompress(data)
+    raise Ros2ReaderError(f"unsupported chunk compression {compression!r}")
+
+
+def _typestore(definitions: dict[str, tuple[str, str]], fallback: Stores | None) -> Any:
+    """A typestore of the file's own definitions (msgtype -> (encoding, text)), or, when one is
+    missing or not in .msg form, rosbags' `fallback` store (as AnyReader's default)."""
+    if definitions and all(enc in ("ros1msg", "ros2msg") for enc, _ in definitions.values()):
+        typestore = get_typestore(Stores.EMPTY)
+        for msgtype, (_, text) in definitions.items():
+            typestore.register(get_types_from_msg(text, msgtype))
+        return typestore
+    if fallback is None:
+        raise Ros2ReaderError(f"no usable message definition for {', '.join(definitions)}")
+    return get_typestore(fallback)
+
+
+class _BagReader:
+    """What RosbagSource needs of an open bag; `recovered` is the number of complete messages
+    read from a recording cut short (None when the file is whole)."""
+
+    recovered: int | None = None
+
+    def close(self) -> None:
+        return None
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        """topic -> (normalized msgtype, message count)."""
+        raise NotImplementedError
+
+    def raw_messages(self, topic: str) -> Iterator[tuple[Any, bytes]]:
+        """(deserializer, raw bytes) of every message on the topic."""
+        raise NotImplementedError
+
+
+class _McapScan(_BagReader):
+    """Sequential MCAP reader, for what rosbags' MCAP reader refuses: profile "ros1" files, and
+    the complete messages of a file cut short (no footer or summary, the last chunk cut off:
+    a crashed recorder). Messages of a chunk are yielded in log-time order."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -161,19 +232,24 @@ class _Ros1Mcap:
         with path.open("rb") as fh:
             if fh.read(8) != _MCAP_MAGIC:
                 raise Ros2ReaderError("not an MCAP file (bad magic)")
-            self.data_start = 8 + 9 + len(self._record(fh, 0x01))
-            fh.seek(self.size - 37)
+            header = self._record(fh, 0x01)
+            self.profile = _McapStrings(header, 0).next()
+            self.data_start = 8 + 9 + len(header)
+            fh.seek(max(self.data_start, self.size - 37))
             footer = fh.read(37)
-            if len(footer) != 37 or footer[-8:] != _MCAP_MAGIC or footer[0] != 0x02:
-                raise Ros2ReaderError("MCAP footer missing (file truncated?)")
-            summary_start = struct.unpack_from("<Q", footer, 9)[0]
+            self.truncated = not (len(footer) == 37 and footer[-8:] == _MCAP_MAGIC
+                                  and footer[:9] == b"\x02\x14" + bytes(7))
             counts = None
-            if self.data_start <= summary_start < self.size - 37:
-                fh.seek(summary_start)
-                counts = self._read_summary(fh, self.size - 37)
+            if not self.truncated:
+                summary_start = struct.unpack_from("<Q", footer, 9)[0]
+                if self.data_start <= summary_start < self.size - 37:
+                    fh.seek(summary_start)
+                    counts = self._read_summary(fh, self.size - 37)
             if counts is None:
                 counts = Counter(cid for cid, _, _ in self._messages(fh, None))
         self.counts = counts
+        if self.truncated:
+            self.recovered = sum(counts.values())
 
     def _record(self, fh: BinaryIO, expect: int) -> bytes:
         """Content of the record at the current position, which must have opcode `expect`."""
@@ -212,18 +288,26 @@ class _Ros1Mcap:
 
     def _messages(self, fh: BinaryIO, channel_ids: set[int] | None
                   ) -> Iterator[tuple[int, int, bytes]]:
-        """(channel id, log time ns, ROS1 bytes) of the data section, time-sorted per chunk."""
+        """(channel id, log time ns, raw message) of the data section; in a truncated file, up
+        to the last complete message (a record cut off ends the walk, a chunk cut off gives the
+        messages of its decodable part)."""
         fh.seek(self.data_start)
         while True:
             head = fh.read(9)
             if len(head) < 9:
+                if self.truncated:
+                    return
                 raise Ros2ReaderError("MCAP data section ends without a DataEnd record (truncated)")
             op, length = struct.unpack("<BQ", head)
             if op in (0x0F, 0x02):
                 return
+            if self.truncated and fh.tell() + length > self.size:
+                if op == 0x06:
+                    yield from self._chunk_prefix(fh.read(), channel_ids)
+                return
             rec = self._content(fh, length)
             if op == 0x06:
-                start, end, size, crc = struct.unpack_from("<QQQI", rec)
+                _, _, size, crc = struct.unpack_from("<QQQI", rec)
                 strings = _McapStrings(rec, 28)
                 compression = strings.next()
                 (nbytes,) = struct.unpack_from("<Q", rec, strings.pos)
@@ -238,13 +322,31 @@ class _Ros1Mcap:
             elif op in (0x03, 0x04):
                 self._add_definition(op, rec)
 
-    def _chunk_records(self, buf: bytes, channel_ids: set[int] | None
+    def _chunk_prefix(self, rec: bytes, channel_ids: set[int] | None
+                      ) -> Iterator[tuple[int, int, bytes]]:
+        """The complete messages in the decodable part of a chunk record cut off by the end of
+        the file (no size or CRC to check them against: the compressed stream itself is)."""
+        try:
+            strings = _McapStrings(rec, 28)
+            compression = strings.next()
+            body = rec[strings.pos + 8:strings.pos + 8 + struct.unpack_from("<Q", rec,
+                                                                            strings.pos)[0]]
+            inner = _decompress_prefix(body, compression)
+            msgs = list(self._chunk_records(inner, channel_ids, partial=True))
+        except (*_BAG_ERRORS, *_LEAKS) as exc:
+            log.debug("%s: the chunk cut off at the end is unreadable (%s)", self.path, exc)
+            return
+        yield from sorted(msgs, key=lambda m: m[1])
+
+    def _chunk_records(self, buf: bytes, channel_ids: set[int] | None, partial: bool = False
                        ) -> Iterator[tuple[int, int, bytes]]:
         pos = 0
-        while pos < len(buf):
+        while pos + (9 if partial else 0) < len(buf):
             op, length = struct.unpack_from("<BQ", buf, pos)
             pos += 9
             if pos + length > len(buf):
+                if partial:
+                    return
                 raise Ros2ReaderError("MCAP chunk record runs past the end of its chunk")
             if op == 0x03 or op == 0x04:
                 self._add_definition(op, buf[pos:pos + length])
@@ -255,7 +357,6 @@ class _Ros1Mcap:
             pos += length
 
     def topics(self) -> dict[str, tuple[str, int]]:
-        """topic -> (normalized msgtype, message count)."""
         out: dict[str, tuple[str, int]] = {}
         for cid, (topic, sid) in self.channels.items():
             msgtype = normalize_msgtype(self.schemas[sid][0]) if sid in self.schemas else "?"
@@ -264,20 +365,21 @@ class _Ros1Mcap:
         return out
 
     def raw_messages(self, topic: str) -> Iterator[tuple[Any, bytes]]:
-        """(deserializer, ROS1 bytes) of every message on the topic, in log-time order."""
+        """(deserializer, raw bytes) of every message on the topic, in log-time order."""
         ids = {cid for cid, (t, _) in self.channels.items() if t == topic}
-        typestore = get_typestore(Stores.EMPTY)
         if missing := [cid for cid in ids if self.channels[cid][1] not in self.schemas]:
             raise Ros2ReaderError(f"MCAP channel(s) {missing} have no schema")
-        for cid in ids:
-            name, encoding, text = self.schemas[self.channels[cid][1]]
-            if encoding != "ros1msg":
-                raise Ros2ReaderError(f"schema encoding {encoding!r} is not ros1msg")
-            typestore.register(get_types_from_msg(text, normalize_msgtype(name)))
+        ros1 = self.profile == "ros1"
+        definitions = {normalize_msgtype(name): (encoding, text) for name, encoding, text
+                       in (self.schemas[self.channels[cid][1]] for cid in ids)}
+        if ros1 and (bad := {e for e, _ in definitions.values()} - {"ros1msg"}):
+            raise Ros2ReaderError(f"schema encoding {bad.pop()!r} is not ros1msg")
+        typestore = _typestore(definitions, None if ros1 else Stores.LATEST)
+        deserialize = typestore.deserialize_ros1 if ros1 else typestore.deserialize_cdr
         msgtype = normalize_msgtype(self.schemas[self.channels[next(iter(ids))][1]][0])
         with self.path.open("rb") as fh:
             for _, _, raw in self._messages(fh, ids):
-                yield (lambda r=raw: typestore.deserialize_ros1(r, msgtype)), raw
+                yield (lambda r=raw: deserialize(r, msgtype)), raw
 
 
 class _McapStrings:
@@ -289,15 +391,156 @@ class _McapStrings:
     def next(self) -> str:
         (n,) = struct.unpack_from("<I", self.rec, self.pos)
         self.pos += 4 + n
+        if self.pos > len(self.rec):
+            raise Ros2ReaderError("MCAP string runs past the end of its record")
         return self.rec[self.pos - n:self.pos].decode()
 
 
-class _AnyBag:
+def _ros1_record(src: BinaryIO, end: int) -> tuple[Ros1Header, bytes, bool] | None:
+    """(header, data, complete) of the ROS1 bag record at the current position, None when its
+    header does not fit before `end`; the data is cut short when the record runs past `end`."""
+    pos = src.tell()
+    if pos + 4 > end:
+        return None
+    (size,) = struct.unpack("<I", src.read(4))
+    if pos + 8 + size > end:
+        return None
+    src.seek(pos)
+    header = Ros1Header.read(src)
+    (size,) = struct.unpack("<I", src.read(4))
+    data = src.read(min(size, end - src.tell()))
+    return header, data, len(data) == size
+
+
+class _Ros1BagScan(_BagReader):
+    """The complete messages of a ROS1 bag whose index rosbags cannot use: a recording cut short
+    (the index sits at the end) or left unindexed by a recorder that crashed. rosbags has no
+    reindex, so the records are walked in file order with rosbags' record-header parser; the
+    first record that is cut off or unreadable ends the walk."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.size = path.stat().st_size
+        self.connections: dict[int, tuple[str, str, str]] = {}  # id -> (topic, msgtype, def)
+        with path.open("rb") as fh:
+            if fh.readline(64) != b"#ROSBAG V2.0\n":
+                raise Ros1ReaderError("not a ROS1 v2.0 bag (bad magic)")
+            self.data_start = fh.tell()
+        by_topic = Counter(topic for topic, _ in self._messages(None))
+        self.counts = by_topic
+        self.recovered = sum(by_topic.values())
+
+    def _messages(self, topic: str | None) -> Iterator[tuple[str, bytes]]:
+        """(topic, raw ROS1 message) in file order, up to the first cut-off or bad record."""
+        with self.path.open("rb") as fh:
+            fh.seek(self.data_start)
+            try:
+                while (rec := _ros1_record(fh, self.size)) is not None:
+                    header, data, complete = rec
+                    if header.get_uint8("op") == RecordType.CHUNK:
+                        compression = header.get_string("compression")
+                        inner = (_decompress_prefix(data, compression) if not complete
+                                 else decompressors[compression](data))
+                        yield from self._records(inner, topic)
+                    elif complete:
+                        yield from self._record(header, data, topic)
+                    if not complete:
+                        return
+            except (*_BAG_ERRORS, *_LEAKS) as exc:
+                log.debug("%s: records unreadable from offset %d on (%s)", self.path,
+                          fh.tell(), exc)
+
+    def _records(self, buf: bytes, topic: str | None) -> Iterator[tuple[str, bytes]]:
+        src = BytesIO(buf)
+        while (rec := _ros1_record(src, len(buf))) is not None and rec[2]:
+            yield from self._record(rec[0], rec[1], topic)
+
+    def _record(self, header: Ros1Header, data: bytes, topic: str | None
+                ) -> Iterator[tuple[str, bytes]]:
+        op = header.get_uint8("op")
+        if op == RecordType.CONNECTION:
+            conn = Ros1Header.read(BytesIO(struct.pack("<I", len(data)) + data))
+            self.connections[header.get_uint32("conn")] = (
+                ros1_normalize(header.get_string("topic")),
+                normalize_msgtype(conn.get_string("type")), conn.get_string("message_definition"))
+        elif op == RecordType.MSGDATA:
+            known = self.connections.get(header.get_uint32("conn"))
+            if known is not None and (topic is None or known[0] == topic):
+                yield known[0], data
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        return {t: (typ, self.counts.get(t, 0)) for t, typ, _ in self.connections.values()}
+
+    def raw_messages(self, topic: str) -> Iterator[tuple[Any, bytes]]:
+        definitions = {typ: ("ros1msg", text) for t, typ, text in self.connections.values()
+                       if t == topic}
+        typestore = _typestore(definitions, None)
+        msgtype = next(iter(definitions))
+        for _, raw in self._messages(topic):
+            yield (lambda r=raw: typestore.deserialize_ros1(r, msgtype)), raw
+
+
+class _Db3Scan(_BagReader):
+    """The messages sqlite still reads from a ROS2 .db3 cut short, in row order, up to the first
+    row it cannot read."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.db = apsw.Connection(str(path), flags=apsw.SQLITE_OPEN_READONLY)
+        try:
+            # sqlite refuses a file shorter than its header's page count as corrupt unless the
+            # schema is "writable"; nothing is written (read-only connection).
+            self.db.execute("PRAGMA writable_schema=ON")
+            self.topic_rows = {tid: (ros1_normalize(name), normalize_msgtype(typ)) for tid, name, typ
+                               in self.db.execute("SELECT id, name, type FROM topics")}
+            try:
+                self.definitions = {normalize_msgtype(t): (e, d) for t, e, d in self.db.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition "
+                    "FROM message_definitions")}
+            except apsw.SQLError:  # older bags have no such table: rosbags' types are used
+                self.definitions = {}
+            self.counts = Counter(self.topic_rows[tid][0] for tid, _ in self._rows(None)
+                                  if tid in self.topic_rows)
+        except BaseException:
+            self.db.close()
+            raise
+        self.recovered = sum(self.counts.values())
+
+    def close(self) -> None:
+        self.db.close()
+
+    def _rows(self, topic_ids: set[int] | None) -> Iterator[tuple[int, bytes]]:
+        try:
+            for tid, data in self.db.execute("SELECT topic_id, data FROM messages ORDER BY id"):
+                if topic_ids is None or tid in topic_ids:
+                    yield tid, data
+        except apsw.Error as exc:
+            log.debug("%s: rows unreadable from here on (%s)", self.path, exc)
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        return {name: (typ, self.counts.get(name, 0)) for name, typ in self.topic_rows.values()}
+
+    def raw_messages(self, topic: str) -> Iterator[tuple[Any, bytes]]:
+        ids = {tid for tid, (name, _) in self.topic_rows.items() if name == topic}
+        msgtype = self.topic_rows[next(iter(ids))][1]
+        typestore = _typestore({msgtype: self.definitions[msgtype]}
+                               if msgtype in self.definitions else {}, Stores.LATEST)
+        if msgtype not in typestore.fielddefs:
+            raise Ros2ReaderError(f"no message definition for {msgtype}")
+        for _, raw in self._rows(ids):
+            yield (lambda r=raw: typestore.deserialize_cdr(r, msgtype)), raw
+
+
+class _AnyBag(_BagReader):
     """rosbags' AnyReader over one ROS1 .bag, ROS2 folder or ROS2-profile .mcap/.db3 file."""
 
     def __init__(self, path: Path):
         # Bags without embedded definitions (old ROS2 sqlite3) need a default typestore.
         self.reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+        self.reader.open()
+
+    def close(self) -> None:
+        self.reader.close()
 
     def topics(self) -> dict[str, tuple[str, int]]:
         return {name: (info.msgtype or "?", info.msgcount)
@@ -319,25 +562,81 @@ def _mcap_profile(path: Path) -> str:
     return head[21:21 + n].decode(errors="replace")
 
 
-@contextmanager
-def _open_bag(path: Path) -> Iterator[_AnyBag | _Ros1Mcap]:
-    """An open bag; rosbags' exceptions become InputError naming the file."""
+def _recovery_reader(path: Path) -> _BagReader | None:
+    """A reader of the complete messages of a recording rosbags refuses (cut short, no index),
+    or None when the file is not one (or not even that can be read)."""
+    if path.is_dir():
+        files = [f for f in path.iterdir() if f.suffix.lower() in (".db3", ".mcap")]
+        if len(files) != 1:
+            return None
+        path = files[0]
+    suffix = path.suffix.lower()
+    kinds = {".bag": _Ros1BagScan, ".mcap": _McapScan, ".db3": _Db3Scan}
+    if suffix not in kinds:
+        return None
+    try:
+        reader = kinds[suffix](path)
+    except (*_BAG_ERRORS, *_LEAKS) as exc:
+        log.debug("%s: no message recoverable (%s)", path, exc)
+        return None
+    return reader if reader.recovered is not None else None
+
+
+def _problem(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def _open_reader(path: Path) -> _BagReader:
+    """The reader for a bag: rosbags' AnyReader, ours for ros1-profile mcap, and, when rosbags
+    refuses a recording cut short, ours of its complete messages (`recovered` set)."""
     try:
         if path.is_file() and path.suffix.lower() == ".mcap" and _mcap_profile(path) == "ros1":
-            yield _Ros1Mcap(path)
-            return
-        bag = _AnyBag(path)
-        with bag.reader:
-            yield bag
+            return _McapScan(path)
+        try:
+            return _AnyBag(path)
+        except (*_BAG_ERRORS, *_LEAKS) as exc:
+            recovered = _recovery_reader(path)
+            if recovered is None:
+                raise
+            if recovered.recovered == 0:
+                recovered.close()
+                raise InputError(path, "truncated or damaged recording: not one complete "
+                                       f"message in it ({_problem(exc)})") from exc
+            return recovered
+    except (*_BAG_ERRORS, *_LEAKS) as exc:
+        raise InputError(path, f"unreadable or damaged bag ({_problem(exc)})") from exc
+
+
+def _topic_messages(bag: _BagReader, topic: str) -> Iterator[Any]:
+    """The deserializers of a topic's messages, in order (see _LEAKS)."""
+    try:
+        for deserialize, _ in bag.raw_messages(topic):
+            yield deserialize
+    except _LEAKS as exc:
+        raise Ros2ReaderError(f"{type(exc).__name__}: {exc}") from exc
+
+
+@contextmanager
+def _open_bag(path: Path) -> Iterator[_BagReader]:
+    """An open bag; the errors of rosbags and of the readers here become InputError naming
+    the file."""
+    bag = _open_reader(path)
+    try:
+        yield bag
     except _BAG_ERRORS as exc:
-        problem = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InputError(path, f"unreadable or damaged bag ({problem})") from exc
+        raise InputError(path, f"unreadable or damaged bag ({_problem(exc)})") from exc
+    finally:
+        bag.close()
 
 
 class RosbagSource:
     """PointCloud2 messages of one topic of a ROS1/ROS2 bag or MCAP file, as Scans.
 
-    index = 0-based message position in the topic; see the module docstring for stamps and times.
+    index = 0-based position among the scans kept: a message whose header stamp is not after
+    the previous kept one (a duplicate or a step back) is dropped, so stamps strictly increase
+    and `len`, `scans(start, count)` and a resumed run all count the same scans. A recording cut
+    short gives its complete messages. Both are counted in `input_notes` and logged once.
+    See the module docstring for stamps and times.
     """
 
     kind = "rosbag"
@@ -352,10 +651,27 @@ class RosbagSource:
         self.ground_truth: np.ndarray | None = None
         with _open_bag(self.path) as bag:
             topics = bag.topics()
+            recovered = bag.recovered
         self.topic = self._pick_topic(topics, topic)
         self._count = topics[self.topic][1]
+        self._notes: dict[str, int] = {}
+        if recovered is not None:
+            if self._count == 0:  # the error says it all: no warning line before it
+                raise InputError(self.path, f"truncated recording (no footer/index): recovered "
+                                            f"{recovered} complete messages, none on {self.topic}")
+            self._notes["recovered_truncated_messages"] = self._count
+            log.warning("%s: truncated recording (no footer/index): recovered %d complete "
+                        "messages, %d of them on %s", self.path, recovered, self._count,
+                        self.topic)
         if self._count == 0:
             raise InputError(self.path, f"topic {self.topic} has no messages")
+        self._kept: list[int] | None = None  # topic positions of the kept messages
+
+    @property
+    def input_notes(self) -> dict[str, int]:
+        """Counts of what the reader dropped or recovered (for summary.json)."""
+        self._kept_positions()
+        return dict(self._notes)
 
     def _pick_topic(self, topics: dict[str, tuple[str, int]], topic: str | None) -> str:
         clouds = sorted(t for t, (typ, _) in topics.items() if typ == POINTCLOUD2)
@@ -374,32 +690,71 @@ class RosbagSource:
                                         f"({', '.join(clouds)}): pass --topic to choose one")
         return clouds[0]
 
+    def _kept_positions(self) -> list[int]:
+        """Positions in the topic of the messages kept: one pass over the header stamps, each
+        one kept when after the last kept stamp (the count is needed before the first scan)."""
+        if self._kept is not None:
+            return self._kept
+        kept: list[int] = []
+        duplicate = backwards = n_read = 0
+        last = None
+        with _open_bag(self.path) as bag:
+            for n_read, deserialize in enumerate(_topic_messages(bag, self.topic), 1):
+                stamp = header_stamp_ns(self._message(n_read - 1, deserialize))
+                if last is not None and stamp <= last:
+                    duplicate += stamp == last
+                    backwards += stamp < last
+                    continue
+                kept.append(n_read - 1)
+                last = stamp
+        if n_read < self._count:
+            raise InputError(self.path, f"{self.topic}: the bag lists {self._count} messages but "
+                                        f"only {n_read} could be read (damaged bag?)")
+        if duplicate or backwards:
+            log.warning("%s: %s: dropped %d of %d scans whose header stamp is not after the "
+                        "previous scan's (%d duplicate, %d going backwards)", self.path,
+                        self.topic, duplicate + backwards, n_read, duplicate, backwards)
+        self._notes.update(dropped_duplicate_stamps=duplicate, dropped_backwards_stamps=backwards)
+        self._kept = kept
+        return kept
+
     def __len__(self) -> int:
-        return self._count
+        return len(self._kept_positions())
 
     def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]:
-        """Scans start .. start+count-1 of the topic (header stamps, times relative to them)."""
-        stop = self._count if count is None else min(self._count, start + count)
+        """Kept scans start .. start+count-1 of the topic (header stamps, times relative to
+        them)."""
+        kept = self._kept_positions()
+        stop = len(kept) if count is None else min(len(kept), start + count)
         if start >= stop:
             return
+        wanted = {position: index for index, position in enumerate(kept[start:stop], start)}
+        last = kept[stop - 1]
         i = -1
         with _open_bag(self.path) as bag:
-            for i, (deserialize, _) in enumerate(bag.raw_messages(self.topic)):
-                if i >= stop:
+            for i, deserialize in enumerate(_topic_messages(bag, self.topic)):
+                if i > last:
                     break
-                if i >= start:
-                    yield self._scan(i, deserialize())
-        if i + 1 < stop:
-            raise InputError(self.path, f"{self.topic}: the bag lists {self._count} messages but "
-                                        f"only {i + 1} could be read (damaged bag?)")
+                if i in wanted:
+                    yield self._scan(wanted[i], i, self._message(i, deserialize))
+        if i < last:
+            raise InputError(self.path, f"{self.topic}: message {last} could be read before but "
+                                        f"not now (only {i + 1}; damaged bag?)")
 
-    def _scan(self, index: int, msg: Any) -> Scan:
+    def _message(self, position: int, deserialize: Any) -> Any:
+        try:
+            return deserialize()
+        except (*_BAG_ERRORS, *_LEAKS) as exc:
+            raise InputError(self.path, f"{self.topic} message {position} cannot be "
+                                        f"deserialized ({_problem(exc)})") from exc
+
+    def _scan(self, index: int, position: int, msg: Any) -> Scan:
         try:
             cloud = decode_pointcloud2(msg)
         except PointCloud2Error as exc:
-            raise InputError(self.path, f"{self.topic} message {index}: {exc}") from exc
+            raise InputError(self.path, f"{self.topic} message {position}: {exc}") from exc
         total = len(cloud.points) + cloud.n_dropped
         log.debug("%s[%d]: %d of %d points kept (%d NaN/inf or (0,0,0) returns dropped)",
-                  self.topic, index, len(cloud.points), total, cloud.n_dropped)
+                  self.topic, position, len(cloud.points), total, cloud.n_dropped)
         return Scan(index, header_stamp_ns(msg) * 1e-9, cloud.points, cloud.point_times,
-                    cloud.intensity, f"{self.path}:{self.topic}[{index}]")
+                    cloud.intensity, f"{self.path}:{self.topic}[{position}]")
