@@ -7,6 +7,7 @@ from lidar_slam.errors import InputError
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
+from lidar_slam.io.trajectory import read_times
 from lidar_slam.mapping import write_ply
 from lidar_slam.o3d import o3d
 
@@ -178,9 +179,9 @@ def test_bin_with_wrong_size(tmp_path):
 
 @pytest.mark.parametrize("name,content", [("bad.pcd", b"garbage\x00\x01"),
                                           ("bad.ply", b"not a ply"),
-                                          ("trunc.pcd", b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n"
+                                          ("trunc.pcd", (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n"
                                            b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 10\n"
-                                           b"HEIGHT 1\nPOINTS 10\nDATA binary\n\x00\x00")])
+                                           b"HEIGHT 1\nPOINTS 10\nDATA binary\n\x00\x00"))])
 def test_unreadable_pcd_ply(tmp_path, name, content):
     (tmp_path / name).write_bytes(content)
     with pytest.raises(InputError, match=name):
@@ -210,3 +211,92 @@ def test_make_scan_drops_exactly_the_non_finite_rows():
     np.testing.assert_array_equal(scan.intensity, inten[keep])
     clean = make_scan(0, 1.0, CloudData(pts[keep], None, None), "x")
     assert clean.points is not None and len(clean.points) == 98
+
+
+def _sample_with_times(tmp_path, edit) -> "Path":
+    """sample_scans copied with its times.txt lines changed by edit(list of lines)."""
+    import shutil
+    from pathlib import Path
+
+    seq = tmp_path / "seq"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "sample_scans", seq)
+    lines = (seq / "times.txt").read_text().splitlines()
+    (seq / "times.txt").write_text("\n".join(edit(lines)) + "\n")
+    return seq
+
+
+@pytest.mark.parametrize("edit,needles", [
+    # scan 11 stamped before scan 10 (lines 12 and 11 of times.txt)
+    (lambda ls: ls[:10] + [ls[11], ls[10]] + ls[12:],
+     ["times.txt: line 12: stamp 2.000000 s is not after line 11's 2.200000 s "
+      "(stamps must increase)"]),
+    (lambda ls: ls[:30] + [ls[29]] + ls[31:], ["line 31: stamp 5.800000 s is not after line "
+                                               "30's 5.800000 s"]),
+    (lambda ls: ls[:5] + ["nan"] + ls[6:], ["times.txt: line 6: stamp nan is not a finite"]),
+    (lambda ls: ls[:5] + ["inf"] + ls[6:], ["times.txt: line 6: stamp inf is not a finite"]),
+], ids=["back", "repeated", "nan", "inf"])
+def test_scan_stamps_that_do_not_increase_stop_the_run_with_the_line(tmp_path, edit, needles):
+    """A times.txt with two stamps swapped ran (ATE 0.083 -> 0.149 m on the sample drive); now
+    the run stops at once: exit 2, one line naming the file, the line and the stamps."""
+    from test_cli import assert_one_line_error, lidar_slam
+
+    seq = _sample_with_times(tmp_path, edit)
+    proc = lidar_slam("run", seq, "--out", tmp_path / "out", "--n-scans", "3", timeout=120)
+    assert_one_line_error(proc, *needles)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_comment_or_blank_line_keeps_the_line_numbers_of_the_file(tmp_path):
+    (tmp_path / "times.txt").write_text("# stamps\n0.0\n\n0.1  # ok\n0.1\n")
+    with pytest.raises(InputError, match="line 5: stamp 0.100000 s is not after line 4's"):
+        read_times(tmp_path / "times.txt")
+    (tmp_path / "times.txt").write_text("1.0000000001\n1.0000000002\n1.0000000001\n")
+    with pytest.raises(InputError, match=r"line 3: stamp 1.0000000001 s is not after line 2's "
+                                         r"1.0000000002 s"):
+        read_times(tmp_path / "times.txt")
+
+
+def test_kitti_raw_timestamps_that_go_back_are_refused(tmp_path):
+    from lidar_slam.io.sources import read_kitti_raw_timestamps
+
+    path = tmp_path / "timestamps.txt"
+    path.write_text("2011-09-26 13:02:25.964389445\n2011-09-26 13:02:26.064389445\n"
+                    "2011-09-26 13:02:26.014389445\n")
+    with pytest.raises(InputError, match=r"timestamps.txt: line 3: stamp 1317042146.01439\d s "
+                                         r"is not after line 2's 1317042146.064389 s"):
+        read_kitti_raw_timestamps(path)
+    path.write_text("2011-09-26 13:02:25.964389445\n2011-09-26 13:02:25.964389445\n")
+    with pytest.raises(InputError, match="line 2: .* is not after line 1's"):
+        read_kitti_raw_timestamps(path)
+
+
+def test_shared_sequences_still_read(kitti16, ouster_loop):
+    """The stamps of the shared data increase: both still open, with all their stamps."""
+    assert len(open_source(kitti16).stamps) == 16
+    assert len(open_source(ouster_loop).stamps) == 77
+
+
+def test_a_calib_tr_that_is_not_rigid_or_finite_is_refused(tmp_path):
+    from lidar_slam.io.trajectory import read_kitti_calib_tr
+
+    calib = tmp_path / "calib.txt"
+    for tr, problem in (("1 0 0 0 0 1 0 0 0 0 1 nan", "NaN or infinite"),
+                        ("2 0 0 0 0 1 0 0 0 0 1 0", "not a rigid transform"),
+                        ("0 0 0 0 0 0 0 0 0 0 0 0", "not a rigid transform"),
+                        ("-1 0 0 0 0 1 0 0 0 0 1 0", "not a rigid transform")):
+        calib.write_text(f"P0: 1 2 3\nTr: {tr}\n")
+        with pytest.raises(InputError, match=f"line 2: Tr .*{problem}"):
+            read_kitti_calib_tr(calib)
+    calib.write_bytes(b"Tr: \xff\xfe\n")
+    with pytest.raises(InputError, match="not a text file"):
+        read_kitti_calib_tr(calib)
+
+
+def test_reference_poses_with_nan_are_refused(tmp_path):
+    from lidar_slam.io.trajectory import read_kitti_poses
+
+    rows = np.tile(np.eye(4)[:3].ravel(), (3, 1))
+    rows[1, 3] = np.inf
+    np.savetxt(tmp_path / "poses.txt", rows)
+    with pytest.raises(InputError, match="poses.txt: pose 2: NaN or infinite"):
+        read_kitti_poses(tmp_path / "poses.txt")
