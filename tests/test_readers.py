@@ -172,9 +172,11 @@ def test_bad_paths(tmp_path, make, problem):
 
 
 def test_bin_with_wrong_size(tmp_path):
-    (tmp_path / "x.bin").write_bytes(b"\0" * 20)
-    with pytest.raises(InputError, match=r"x.bin: size 20 bytes is not a multiple of 16"):
+    (tmp_path / "x.bin").write_bytes(b"\0" * 1234)
+    with pytest.raises(InputError) as err:
         next(open_source(tmp_path).scans())
+    assert str(err.value) == (f"{tmp_path / 'x.bin'}: 1234 bytes is not a multiple of 16 "
+                              "(float32 x,y,z,intensity)")
 
 
 @pytest.mark.parametrize("name,content", [("bad.pcd", b"garbage\x00\x01"),
@@ -213,7 +215,7 @@ def test_make_scan_drops_exactly_the_non_finite_rows():
     assert clean.points is not None and len(clean.points) == 98
 
 
-def _sample_with_times(tmp_path, edit) -> "Path":
+def _sample_with_times(tmp_path, edit):
     """sample_scans copied with its times.txt lines changed by edit(list of lines)."""
     import shutil
     from pathlib import Path
@@ -228,10 +230,10 @@ def _sample_with_times(tmp_path, edit) -> "Path":
 @pytest.mark.parametrize("edit,needles", [
     # scan 11 stamped before scan 10 (lines 12 and 11 of times.txt)
     (lambda ls: ls[:10] + [ls[11], ls[10]] + ls[12:],
-     ["times.txt: line 12: stamp 2.000000 s is not after line 11's 2.200000 s "
-      "(stamps must increase)"]),
-    (lambda ls: ls[:30] + [ls[29]] + ls[31:], ["line 31: stamp 5.800000 s is not after line "
-                                               "30's 5.800000 s"]),
+     [("times.txt: line 12: stamp 2.000000 s is not after line 11's 2.200000 s (stamps must "
+       "increase)")]),
+    (lambda ls: ls[:30] + [ls[29]] + ls[31:],
+     ["line 31: stamp 5.800000 s is not after line 30's 5.800000 s"]),
     (lambda ls: ls[:5] + ["nan"] + ls[6:], ["times.txt: line 6: stamp nan is not a finite"]),
     (lambda ls: ls[:5] + ["inf"] + ls[6:], ["times.txt: line 6: stamp inf is not a finite"]),
 ], ids=["back", "repeated", "nan", "inf"])
@@ -300,3 +302,59 @@ def test_reference_poses_with_nan_are_refused(tmp_path):
     np.savetxt(tmp_path / "poses.txt", rows)
     with pytest.raises(InputError, match="poses.txt: pose 2: NaN or infinite"):
         read_kitti_poses(tmp_path / "poses.txt")
+
+
+PCD_XYZ = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH %d\n"
+           b"HEIGHT 1\nPOINTS %d\nDATA %s\n")
+PLY_XYZ = (b"ply\nformat %s 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+           b"property float z\nend_header\n")
+
+
+@pytest.mark.parametrize("name,content,problem", [
+    # open3d returned 5 points, 4 of them uninitialised memory, and printed nothing
+    ("short.pcd", PCD_XYZ % (5, 5, b"ascii") + b"1 2 3\n4 5\n", "POINTS 5 but the ascii data"),
+    # ... or took words that are not numbers as 0
+    ("junk.pcd", PCD_XYZ % (2, 2, b"ascii") + b"a b c\n1 2 3\n", "'a' is not a number"),
+    ("size2.pcd", PCD_XYZ.replace(b"SIZE 4 4 4", b"SIZE 2 2 2") % (1, 1, b"binary")
+     + b"\0" * 6, "SIZE 2 TYPE F is not a supported type"),  # was a RuntimeError
+    ("huge.pcd", PCD_XYZ % (2**31 - 1, 2**31 - 1, b"binary") + b"\0" * 24,
+     "binary data is 24 bytes"),  # was a RuntimeError (malloc failed) or a large allocation
+    ("short.ply", PLY_XYZ % (b"binary_little_endian", 100) + b"\0" * 24,
+     "binary data is 24 bytes"),  # 96 of 100 points uninitialised
+    ("short_ascii.ply", PLY_XYZ % (b"ascii", 2) + b"1 2 3\n4 5\n", "ascii data has 5 values"),
+    ("no_z.ply", (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
+                  b"property float y\nend_header\n1 2\n"), "need x, y, z"),  # z was 0
+])
+def test_pcd_and_ply_that_open3d_would_fill_with_garbage_are_refused(tmp_path, name, content,
+                                                                     problem):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(InputError, match=problem) as err:
+        read_cloud(tmp_path / name)
+    assert str(err.value).startswith(f"{tmp_path / name}: ") and "\n" not in str(err.value)
+
+
+def test_good_ascii_pcd_and_ply_read_exactly(tmp_path):
+    (tmp_path / "a.pcd").write_bytes(PCD_XYZ % (2, 2, b"ascii") + b"1 2 3\n-4.5 nan 6e3\n")
+    (tmp_path / "a.ply").write_bytes(PLY_XYZ % (b"ascii", 2) + b"1 2 3\n-4.5 nan 6e3\n")
+    for name in ("a.pcd", "a.ply"):
+        np.testing.assert_array_equal(read_cloud(tmp_path / name).points,
+                                      [[1, 2, 3], [-4.5, np.nan, 6000]])
+
+
+def test_npy_files_that_numpy_cannot_read_as_points_are_one_error(tmp_path):
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.zeros((2, 3), np.float32))
+    cases = {
+        "empty.npy": b"",  # was EOFError
+        "huge.npy": buf.getvalue().replace(b"(2, 3)", b"(10000000000, 3)"),  # was MemoryError
+    }
+    text = np.zeros(2, dtype=[("x", "S4"), ("y", "f4"), ("z", "f4")])
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+    np.save(tmp_path / "text.npy", text)  # was a ValueError from astype
+    np.save(tmp_path / "complex.npy", np.zeros((2, 3), np.complex64))  # imaginary part dropped
+    for name in ("empty.npy", "huge.npy", "text.npy", "complex.npy"):
+        with pytest.raises(InputError, match=name):
+            read_cloud(tmp_path / name)

@@ -325,7 +325,7 @@ def read_ahead(scans: Iterator[Scan], depth: int = 2) -> Iterator[Scan]:
                 if stop.is_set():
                     return
             q.put(done)
-        except BaseException as exc:  # handed to the consumer, raised there
+        except BaseException as exc:  # noqa: BLE001 (handed to the consumer, raised there)
             q.put(exc)
 
     thread = threading.Thread(target=produce, name="read-ahead", daemon=True)
