@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -16,13 +17,15 @@ from lidar_slam.io.atomic import write_text_atomic
 Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
 Fraction = Annotated[float, Field(ge=0, le=1)]
-Count = Annotated[int, Field(ge=1)]
-NonNegativeInt = Annotated[int, Field(ge=0)]
+Count = Annotated[int, Field(ge=1, le=2**31 - 1)]  # kiss-icp and gtsam take C ints
+NonNegativeInt = Annotated[int, Field(ge=0, le=2**31 - 1)]
 Auto = Literal["auto"]  # the value follows the data (lidar_slam.loop.adapt), fixed at scan 0
+log = logging.getLogger(__name__)
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # No NaN/inf: `voxel_size_m: .inf` passed every range check and ran.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class DataConfig(_Section):
@@ -282,25 +285,43 @@ def _merge(base: dict, overlay: dict) -> dict:
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> SlamConfig:
     """Defaults, overlaid by a YAML file, overlaid by a dict of overrides."""
-    data: dict = {}
-    if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise InputError(p, "config file does not exist")
-        try:
-            data = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputError(p, f"not valid YAML ({str(exc).splitlines()[0]})") from exc
-        if not isinstance(data, dict):
-            raise InputError(p, "config must be a mapping of sections")
+    data = _read_overlay(Path(path)) if path is not None else {}
     data = _merge(data, overrides or {})
     try:
-        return SlamConfig(**data)
+        return SlamConfig.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
-        got = f" (got {err['input']!r})" if err["type"].endswith(("_than", "_equal")) else ""
-        raise ConfigError(f"{path or 'config'}: {where}: {err['msg']}{got}") from exc
+        where = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        shown = repr(err["input"])
+        got = "" if err["type"] == "extra_forbidden" else \
+            f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
+        message = " ".join(f"{where}: {err['msg']}{got}".split())
+        raise ConfigError(f"{path or 'config'}: {message}") from None
+
+
+def _read_overlay(p: Path) -> dict:
+    """The mapping of sections in a YAML file; an empty file (or only comments) is the defaults,
+    said in a warning (a config that was meant to say something and says nothing)."""
+    if not p.is_file():
+        raise InputError(p, "config file does not exist")
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(p, f"not a text file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise InputError(p, f"cannot read the config file ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        first = " ".join(str(exc).splitlines()[0].split())
+        raise InputError(p, f"not valid YAML ({first})") from None
+    except (ValueError, RecursionError) as exc:  # e.g. a date that does not exist: 2023-02-30
+        raise InputError(p, f"not valid YAML ({' '.join(str(exc).split())[:120]})") from None
+    if data is None:
+        log.warning("%s: config file is empty; using the defaults", p)
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(p, f"config must be a mapping of sections, not a "
+                            f"{type(data).__name__}")
+    return data
 
 
 def dump_config(config: SlamConfig, path: str | Path) -> None:
@@ -312,6 +333,6 @@ def overlay_config(base: SlamConfig, path: str | Path) -> SlamConfig:
     """base overlaid by the YAML file at path (only the keys the file sets)."""
     overlay = load_config(path).model_dump(exclude_unset=True)
     try:
-        return SlamConfig(**_merge(base.model_dump(), overlay))
+        return SlamConfig.model_validate(_merge(base.model_dump(), overlay))
     except ValidationError as exc:  # load_config validated the file alone; this cannot fail
         raise ConfigError(f"{path}: {exc.errors()[0]['msg']}") from exc

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from lidar_slam.config import load_config
-from lidar_slam.errors import ConfigError
+from lidar_slam.config import SlamConfig, load_config
+from lidar_slam.errors import ConfigError, InputError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -50,7 +50,7 @@ def test_negative_voxel_size_is_one_line_and_exit_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run",
                            str(REPO / "sample_scans"), "--out", str(tmp_path / "o"),
                            "--config", str(cfg)],
-                          capture_output=True, text=True, timeout=300)
+                          check=False, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "odometry.voxel_size_m" in lines[0] and "-1" in lines[0], lines
@@ -66,3 +66,43 @@ def test_default_yaml_lists_the_models_defaults():
 
     path = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
     assert yaml.safe_load(path.read_text()) == SlamConfig().model_dump()
+
+
+@pytest.mark.parametrize("text", ["", "\n\n", "# only a comment\n", "---\n", "~\n"])
+def test_an_empty_config_file_warns_and_gives_the_defaults(tmp_path, text, caplog):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    assert load_config(path) == SlamConfig()
+    assert f"{path}: config file is empty; using the defaults" in caplog.text
+
+
+@pytest.mark.parametrize("text,needles", [
+    ("- odometry\n- data\n", ["config must be a mapping of sections, not a list"]),
+    ("odometry: {voxel_size_m: 0.5, voxel: 1}\n", ["odometry.voxel: Extra inputs"]),
+    ("odometry: {max_points_per_voxel: many}\n",
+     ["odometry.max_points_per_voxel: Input should be a valid integer", "(got 'many')"]),
+    ("odometry: {voxel_size_m: .inf}\n", ["odometry.voxel_size_m: Input should be a finite"]),
+    ("odometry: {max_num_iterations: 10000000000}\n", ["odometry.max_num_iterations"]),
+    ("loop: 5\n", ["loop: Input should be a valid dictionary"]),
+    ("1: {a: b}\n", ["1: Keys should be strings"]),
+    ("data: {max_range_m: [1,\n", ["not valid YAML"]),
+    ("when: 2023-02-30\n", ["not valid YAML (day is out of range for month)"]),
+])
+def test_a_bad_config_file_is_one_line_naming_it(tmp_path, text, needles):
+    """Not a mapping, unknown keys, wrong types, inf, C-int overflow and bad YAML: each one
+    line that names the file (a top-level key that is a number raised a TypeError)."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises((ConfigError, InputError)) as err:
+        load_config(path)
+    line = str(err.value)
+    assert "\n" not in line and line.startswith(f"{path}: "), line
+    for needle in needles:
+        assert needle in line, line
+
+
+def test_a_config_that_is_not_utf8_is_one_line(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_bytes(b"odometry:\n  voxel_size_m: \xff\n")
+    with pytest.raises(InputError, match="c.yaml: not a text file"):
+        load_config(path)

@@ -7,6 +7,7 @@ from lidar_slam.errors import InputError
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
+from lidar_slam.io.trajectory import read_times
 from lidar_slam.mapping import write_ply
 from lidar_slam.o3d import o3d
 
@@ -171,16 +172,18 @@ def test_bad_paths(tmp_path, make, problem):
 
 
 def test_bin_with_wrong_size(tmp_path):
-    (tmp_path / "x.bin").write_bytes(b"\0" * 20)
-    with pytest.raises(InputError, match=r"x.bin: size 20 bytes is not a multiple of 16"):
+    (tmp_path / "x.bin").write_bytes(b"\0" * 1234)
+    with pytest.raises(InputError) as err:
         next(open_source(tmp_path).scans())
+    assert str(err.value) == (f"{tmp_path / 'x.bin'}: 1234 bytes is not a multiple of 16 "
+                              "(float32 x,y,z,intensity)")
 
 
 @pytest.mark.parametrize("name,content", [("bad.pcd", b"garbage\x00\x01"),
                                           ("bad.ply", b"not a ply"),
-                                          ("trunc.pcd", b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n"
+                                          ("trunc.pcd", (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n"
                                            b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 10\n"
-                                           b"HEIGHT 1\nPOINTS 10\nDATA binary\n\x00\x00")])
+                                           b"HEIGHT 1\nPOINTS 10\nDATA binary\n\x00\x00"))])
 def test_unreadable_pcd_ply(tmp_path, name, content):
     (tmp_path / name).write_bytes(content)
     with pytest.raises(InputError, match=name):
@@ -210,3 +213,148 @@ def test_make_scan_drops_exactly_the_non_finite_rows():
     np.testing.assert_array_equal(scan.intensity, inten[keep])
     clean = make_scan(0, 1.0, CloudData(pts[keep], None, None), "x")
     assert clean.points is not None and len(clean.points) == 98
+
+
+def _sample_with_times(tmp_path, edit):
+    """sample_scans copied with its times.txt lines changed by edit(list of lines)."""
+    import shutil
+    from pathlib import Path
+
+    seq = tmp_path / "seq"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "sample_scans", seq)
+    lines = (seq / "times.txt").read_text().splitlines()
+    (seq / "times.txt").write_text("\n".join(edit(lines)) + "\n")
+    return seq
+
+
+@pytest.mark.parametrize("edit,needles", [
+    # scan 11 stamped before scan 10 (lines 12 and 11 of times.txt)
+    (lambda ls: ls[:10] + [ls[11], ls[10]] + ls[12:],
+     [("times.txt: line 12: stamp 2.000000 s is not after line 11's 2.200000 s (stamps must "
+       "increase)")]),
+    (lambda ls: ls[:30] + [ls[29]] + ls[31:],
+     ["line 31: stamp 5.800000 s is not after line 30's 5.800000 s"]),
+    (lambda ls: ls[:5] + ["nan"] + ls[6:], ["times.txt: line 6: stamp nan is not a finite"]),
+    (lambda ls: ls[:5] + ["inf"] + ls[6:], ["times.txt: line 6: stamp inf is not a finite"]),
+], ids=["back", "repeated", "nan", "inf"])
+def test_scan_stamps_that_do_not_increase_stop_the_run_with_the_line(tmp_path, edit, needles):
+    """A times.txt with two stamps swapped ran (ATE 0.083 -> 0.149 m on the sample drive); now
+    the run stops at once: exit 2, one line naming the file, the line and the stamps."""
+    from test_cli import assert_one_line_error, lidar_slam
+
+    seq = _sample_with_times(tmp_path, edit)
+    proc = lidar_slam("run", seq, "--out", tmp_path / "out", "--n-scans", "3", timeout=120)
+    assert_one_line_error(proc, *needles)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_comment_or_blank_line_keeps_the_line_numbers_of_the_file(tmp_path):
+    (tmp_path / "times.txt").write_text("# stamps\n0.0\n\n0.1  # ok\n0.1\n")
+    with pytest.raises(InputError, match="line 5: stamp 0.100000 s is not after line 4's"):
+        read_times(tmp_path / "times.txt")
+    (tmp_path / "times.txt").write_text("1.0000000001\n1.0000000002\n1.0000000001\n")
+    with pytest.raises(InputError, match=r"line 3: stamp 1.0000000001 s is not after line 2's "
+                                         r"1.0000000002 s"):
+        read_times(tmp_path / "times.txt")
+
+
+def test_kitti_raw_timestamps_that_go_back_are_refused(tmp_path):
+    from lidar_slam.io.sources import read_kitti_raw_timestamps
+
+    path = tmp_path / "timestamps.txt"
+    path.write_text("2011-09-26 13:02:25.964389445\n2011-09-26 13:02:26.064389445\n"
+                    "2011-09-26 13:02:26.014389445\n")
+    with pytest.raises(InputError, match=r"timestamps.txt: line 3: stamp 1317042146.01439\d s "
+                                         r"is not after line 2's 1317042146.064389 s"):
+        read_kitti_raw_timestamps(path)
+    path.write_text("2011-09-26 13:02:25.964389445\n2011-09-26 13:02:25.964389445\n")
+    with pytest.raises(InputError, match="line 2: .* is not after line 1's"):
+        read_kitti_raw_timestamps(path)
+
+
+def test_shared_sequences_still_read(kitti16, ouster_loop):
+    """The stamps of the shared data increase: both still open, with all their stamps."""
+    assert len(open_source(kitti16).stamps) == 16
+    assert len(open_source(ouster_loop).stamps) == 77
+
+
+def test_a_calib_tr_that_is_not_rigid_or_finite_is_refused(tmp_path):
+    from lidar_slam.io.trajectory import read_kitti_calib_tr
+
+    calib = tmp_path / "calib.txt"
+    for tr, problem in (("1 0 0 0 0 1 0 0 0 0 1 nan", "NaN or infinite"),
+                        ("2 0 0 0 0 1 0 0 0 0 1 0", "not a rigid transform"),
+                        ("0 0 0 0 0 0 0 0 0 0 0 0", "not a rigid transform"),
+                        ("-1 0 0 0 0 1 0 0 0 0 1 0", "not a rigid transform")):
+        calib.write_text(f"P0: 1 2 3\nTr: {tr}\n")
+        with pytest.raises(InputError, match=f"line 2: Tr .*{problem}"):
+            read_kitti_calib_tr(calib)
+    calib.write_bytes(b"Tr: \xff\xfe\n")
+    with pytest.raises(InputError, match="not a text file"):
+        read_kitti_calib_tr(calib)
+
+
+def test_reference_poses_with_nan_are_refused(tmp_path):
+    from lidar_slam.io.trajectory import read_kitti_poses
+
+    rows = np.tile(np.eye(4)[:3].ravel(), (3, 1))
+    rows[1, 3] = np.inf
+    np.savetxt(tmp_path / "poses.txt", rows)
+    with pytest.raises(InputError, match="poses.txt: pose 2: NaN or infinite"):
+        read_kitti_poses(tmp_path / "poses.txt")
+
+
+PCD_XYZ = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH %d\n"
+           b"HEIGHT 1\nPOINTS %d\nDATA %s\n")
+PLY_XYZ = (b"ply\nformat %s 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+           b"property float z\nend_header\n")
+
+
+@pytest.mark.parametrize("name,content,problem", [
+    # open3d returned 5 points, 4 of them uninitialised memory, and printed nothing
+    ("short.pcd", PCD_XYZ % (5, 5, b"ascii") + b"1 2 3\n4 5\n", "POINTS 5 but the ascii data"),
+    # ... or took words that are not numbers as 0
+    ("junk.pcd", PCD_XYZ % (2, 2, b"ascii") + b"a b c\n1 2 3\n", "'a' is not a number"),
+    ("size2.pcd", PCD_XYZ.replace(b"SIZE 4 4 4", b"SIZE 2 2 2") % (1, 1, b"binary")
+     + b"\0" * 6, "SIZE 2 TYPE F is not a supported type"),  # was a RuntimeError
+    ("huge.pcd", PCD_XYZ % (2**31 - 1, 2**31 - 1, b"binary") + b"\0" * 24,
+     "binary data is 24 bytes"),  # was a RuntimeError (malloc failed) or a large allocation
+    ("short.ply", PLY_XYZ % (b"binary_little_endian", 100) + b"\0" * 24,
+     "binary data is 24 bytes"),  # 96 of 100 points uninitialised
+    ("short_ascii.ply", PLY_XYZ % (b"ascii", 2) + b"1 2 3\n4 5\n", "ascii data has 5 values"),
+    ("no_z.ply", (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
+                  b"property float y\nend_header\n1 2\n"), "need x, y, z"),  # z was 0
+])
+def test_pcd_and_ply_that_open3d_would_fill_with_garbage_are_refused(tmp_path, name, content,
+                                                                     problem):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(InputError, match=problem) as err:
+        read_cloud(tmp_path / name)
+    assert str(err.value).startswith(f"{tmp_path / name}: ") and "\n" not in str(err.value)
+
+
+def test_good_ascii_pcd_and_ply_read_exactly(tmp_path):
+    (tmp_path / "a.pcd").write_bytes(PCD_XYZ % (2, 2, b"ascii") + b"1 2 3\n-4.5 nan 6e3\n")
+    (tmp_path / "a.ply").write_bytes(PLY_XYZ % (b"ascii", 2) + b"1 2 3\n-4.5 nan 6e3\n")
+    for name in ("a.pcd", "a.ply"):
+        np.testing.assert_array_equal(read_cloud(tmp_path / name).points,
+                                      [[1, 2, 3], [-4.5, np.nan, 6000]])
+
+
+def test_npy_files_that_numpy_cannot_read_as_points_are_one_error(tmp_path):
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.zeros((2, 3), np.float32))
+    cases = {
+        "empty.npy": b"",  # was EOFError
+        "huge.npy": buf.getvalue().replace(b"(2, 3)", b"(10000000000, 3)"),  # was MemoryError
+    }
+    text = np.zeros(2, dtype=[("x", "S4"), ("y", "f4"), ("z", "f4")])
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+    np.save(tmp_path / "text.npy", text)  # was a ValueError from astype
+    np.save(tmp_path / "complex.npy", np.zeros((2, 3), np.complex64))  # imaginary part dropped
+    for name in ("empty.npy", "huge.npy", "text.npy", "complex.npy"):
+        with pytest.raises(InputError, match=name):
+            read_cloud(tmp_path / name)

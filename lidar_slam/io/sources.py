@@ -19,9 +19,11 @@ from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, read_bin, read_cloud
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,
+    check_stamp,
     read_kitti_calib_tr,
     read_kitti_poses,
     read_times,
+    text_lines,
 )
 from lidar_slam.types import Scan
 
@@ -72,8 +74,6 @@ def _load_stamps(path: Path, n: int) -> np.ndarray | None:
     if not path.is_file():
         return None
     stamps = read_times(path)
-    if stamps.ndim != 1:
-        raise InputError(path, f"expected one stamp per line, found {stamps.shape[1]} columns")
     if len(stamps) != n:
         raise InputError(path, f"has {len(stamps)} stamps for {n} scans")
     return stamps
@@ -194,21 +194,28 @@ class KittiSource:
 
 def read_kitti_raw_timestamps(path: Path) -> np.ndarray:
     """KITTI raw timestamps.txt ('2011-09-26 13:02:25.964389445' per line) -> seconds since the
-    UNIX epoch, the clock taken as UTC (the fraction is kept to the nanosecond)."""
+    UNIX epoch, the clock taken as UTC (the fraction is kept to the nanosecond); they must
+    increase strictly."""
     from datetime import datetime, timezone
 
-    stamps = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    stamps: list[float] = []
+    prev_line = 0
+    for n, line in enumerate(text_lines(path, "timestamps file"), 1):
         if not line.strip():
             continue
         whole, _, frac = line.strip().partition(".")
         try:
+            if frac and not frac.isdigit():
+                raise ValueError(frac)
             t = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc)
-            stamps.append(t.timestamp() + (float("0." + frac) if frac else 0.0))
+            stamp = t.timestamp() + (float("0." + frac) if frac else 0.0)
         except ValueError:
             raise InputError(path, f"line {n}: not a 'YYYY-MM-DD HH:MM:SS.fraction' stamp "
                                    f"({line.strip()[:40]!r})") from None
-    return np.array(stamps)
+        check_stamp(path, n, stamp, prev_line, stamps[-1] if stamps else None)
+        stamps.append(stamp)
+        prev_line = n
+    return np.array(stamps, dtype=np.float64)
 
 
 class KittiRawSource:
@@ -318,7 +325,7 @@ def read_ahead(scans: Iterator[Scan], depth: int = 2) -> Iterator[Scan]:
                 if stop.is_set():
                     return
             q.put(done)
-        except BaseException as exc:  # handed to the consumer, raised there
+        except BaseException as exc:  # noqa: BLE001 (handed to the consumer, raised there)
             q.put(exc)
 
     thread = threading.Thread(target=produce, name="read-ahead", daemon=True)

@@ -33,6 +33,9 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
         raise InputError(p, "pose file is empty")
     if data.shape[1] != 12:
         raise InputError(p, f"expected 12 numbers per line, found {data.shape[1]}")
+    bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
+    if len(bad):
+        raise InputError(p, f"pose {bad[0] + 1}: NaN or infinite values")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :4] = data.reshape(-1, 3, 4)
     return poses
@@ -72,21 +75,29 @@ def write_tum(path: str | Path, stamps_s: np.ndarray, poses: np.ndarray) -> None
 
 
 def read_kitti_calib_tr(path: str | Path) -> np.ndarray:
-    """Tr (velodyne -> cam0) as 4x4 from a KITTI calib.txt."""
+    """Tr (velodyne -> cam0) as 4x4 from a KITTI calib.txt; a rigid transform (its rotation
+    orthonormal to 1e-3: KITTI's are to 1e-7), else the ground truth would be bent silently."""
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "calib file does not exist")
-    for line in p.read_text().splitlines():
+    for n, line in enumerate(text_lines(p, "calib file"), 1):
         key, _, values = line.partition(":")
         if key.strip() == "Tr":
             try:
                 nums = np.array(values.split(), dtype=float)
             except ValueError:
-                raise InputError(p, f"Tr: not 12 numbers ({values.strip()[:60]})") from None
+                raise InputError(p, f"line {n}: Tr: not 12 numbers "
+                                    f"({values.strip()[:60]!r})") from None
             if nums.size != 12:
-                raise InputError(p, "Tr must have 12 numbers")
+                raise InputError(p, f"line {n}: Tr must have 12 numbers, found {nums.size}")
             T = np.eye(4)
             T[:3, :4] = nums.reshape(3, 4)
+            R = T[:3, :3]
+            if not np.isfinite(nums).all():
+                raise InputError(p, f"line {n}: Tr has NaN or infinite values")
+            if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+                raise InputError(p, f"line {n}: Tr is not a rigid transform (its 3x3 rotation "
+                                    "is not orthonormal with determinant +1)")
             return T
     raise InputError(p, "no 'Tr:' line (velodyne -> cam0 calibration)")
 
@@ -97,9 +108,50 @@ def camera_to_lidar_poses(poses_cam: np.ndarray, Tr: np.ndarray) -> np.ndarray:
 
 
 def read_times(path: str | Path) -> np.ndarray:
-    """One stamp (s) per line."""
+    """One stamp (s) per line (blank lines and '#' comments skipped), strictly increasing and
+    finite: a stamp out of order is refused with its line number (taken silently, a stamp that
+    goes back or repeats doubled the ATE of the sample drive)."""
     p = Path(path)
+    stamps: list[float] = []
+    prev_line = 0
+    for n, line in enumerate(text_lines(p, "times file"), 1):
+        fields = line.partition("#")[0].split()
+        if not fields:
+            continue
+        if len(fields) != 1:
+            raise InputError(p, f"line {n}: expected one stamp per line, found {len(fields)} "
+                                f"columns")
+        try:
+            stamp = float(fields[0])
+        except ValueError:
+            raise InputError(p, f"line {n}: not a number ({fields[0][:40]!r})") from None
+        check_stamp(p, n, stamp, prev_line, stamps[-1] if stamps else None)
+        stamps.append(stamp)
+        prev_line = n
+    return np.array(stamps, dtype=np.float64)
+
+
+def check_stamp(path: Path, line: int, stamp_s: float, prev_line: int,
+                prev_s: float | None) -> None:
+    """Refuse a scan stamp (s) that is not finite or not after the previous one (line numbers
+    1-based)."""
+    if not np.isfinite(stamp_s):
+        raise InputError(path, f"line {line}: stamp {stamp_s} is not a finite number")
+    if prev_s is not None and not stamp_s > prev_s:
+        now, before = f"{stamp_s:.6f}", f"{prev_s:.6f}"
+        if now == before and stamp_s != prev_s:  # apart by less than a microsecond
+            now, before = repr(stamp_s), repr(prev_s)
+        raise InputError(path, f"line {line}: stamp {now} s is not after line {prev_line}'s "
+                               f"{before} s (stamps must increase)")
+
+
+def text_lines(p: Path, what: str) -> list[str]:
+    """The lines of a text file; a missing, unreadable or non-UTF-8 file is one InputError."""
     try:
-        return np.atleast_1d(_loadtxt(p, ndmin=1))
-    except (ValueError, OSError) as exc:
-        raise InputError(p, f"unreadable times file ({exc})") from exc
+        return p.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(p, f"{what} does not exist") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(p, f"not a text file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise InputError(p, f"cannot read {what} ({exc.strerror or exc})") from None
