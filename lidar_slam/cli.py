@@ -162,7 +162,7 @@ def _summary_table(summary: dict) -> str:
     """The run summary as an aligned two-column table, every number with its unit."""
     rows = []
     for key, value in summary.items():
-        if value is None:  # e.g. no topic (not a bag), no git commit: in summary.json only
+        if value is None or value == {}:  # e.g. no topic, no git commit: summary.json only
             continue
         text = f"{value:.4g}" if isinstance(value, float) else str(value)
         rows.append((key, f"{text} {UNITS.get(key, '')}".strip()))
@@ -508,7 +508,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                 status["stopped_by_error"] = end.error
             run_info = {"input": str(data), "input_kind": source.kind, "topic": source.topic,
                         "config_overlay": str(config) if config is not None else None,
-                        "deskew": _deskew_state(cfg, end.n_timed, end.n_read), "start": start,
+                        "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
+                        "input_notes": source.input_notes, "start": start,
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}
             summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,

@@ -519,3 +519,21 @@ def test_lidar_slam_run_on_a_cut_mcap_runs_its_complete_cloud_or_says_why_in_one
     assert rc_ok == 0
     summary = json.loads((tmp_path / "out2.0" / "summary.json").read_text())
     assert summary["input_kind"] == "rosbag" and summary["frames"] == 1
+
+
+def test_a_run_on_a_bag_with_dropped_stamps_counts_them_in_its_summary(tmp_path):
+    """What the bag reader dropped reaches summary.json (input_notes), not only the log."""
+    import json
+    import subprocess
+    import sys
+
+    stamps = [STAMP_NS + round(t * PERIOD_NS) for t in BAD_STAMPS]
+    bag = write_ros1(tmp_path / "bad.bag", stamps)
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(bag), "--out",
+                           str(tmp_path / "o"), "--no-loops"], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == len(KEPT)
+    assert summary["input_notes"] == {"dropped_duplicate_stamps": 2,
+                                      "dropped_backwards_stamps": 2}

@@ -37,6 +37,9 @@ class ScanSource(Protocol):
     topic: str | None  # the bag topic read, None for other inputs
     ground_truth: np.ndarray | None
 
+    @property
+    def input_notes(self) -> dict[str, int]: ...  # what was dropped or recovered (summary.json)
+
     def __len__(self) -> int: ...
 
     def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]: ...
@@ -128,6 +131,11 @@ class FolderSource:
                 raise InputError(root / "poses.txt", f"has {len(gt)} poses for {len(files)} scans")
             self.ground_truth = gt
 
+    @property
+    def input_notes(self) -> dict[str, int]:
+        """Nothing dropped or recovered: stamps that do not increase are refused, not dropped."""
+        return {}
+
     def __len__(self) -> int:
         return len(self.files)
 
@@ -169,6 +177,11 @@ class KittiSource:
                     raise InputError(cand, f"has {len(poses_cam)} poses for {len(self.files)} scans")
                 self.ground_truth = camera_to_lidar_poses(poses_cam, self.Tr)
                 break
+
+    @property
+    def input_notes(self) -> dict[str, int]:
+        """Nothing dropped or recovered: stamps that do not increase are refused, not dropped."""
+        return {}
 
     def __len__(self) -> int:
         return len(self.files)
@@ -241,6 +254,11 @@ class KittiRawSource:
                                               f"{len(self.files)} scans")
         else:
             self.stamps = _assumed_stamps(stamps_path, len(self.files))
+
+    @property
+    def input_notes(self) -> dict[str, int]:
+        """Nothing dropped or recovered: stamps that do not increase are refused, not dropped."""
+        return {}
 
     def __len__(self) -> int:
         return len(self.files)
