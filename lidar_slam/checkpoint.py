@@ -9,14 +9,15 @@ RUN/checkpoint/ holds:
   deviations are valid.
 - `deviations.bin`: every model deviation fed to kiss-icp's adaptive threshold (append-only,
   float64 4x4), replayed on resume to rebuild the threshold exactly.
-- `manifest.json`: the checkpoint itself: which state file it is, and the length and sha256 of
-  every file it depends on (run.json and the state whole; of deviations.bin and the keyframe
-  store's table.bin and points.bin, which grow after it, the prefix it covers), plus a sha256 of
-  the manifest's own content. Written last, atomically (temporary file and rename): a kill at
-  any instant leaves the previous manifest, whose state file is removed only after the new
-  manifest is in place, and whose prefixes later appends do not touch. A resume checks every
-  file against it first (check_same_run) and refuses a damaged, truncated or missing one with
-  one line, before anything is read or cut back.
+- `manifest.json`: the checkpoint itself: which state file it is, how many frames it holds,
+  and the length and sha256 of every file it depends on (run.json and the state whole; of
+  deviations.bin and the keyframe store's table.bin and points.bin, which grow after it, the
+  prefix it covers), plus a sha256 of the manifest's own content. Written last, atomically
+  (temporary file and rename): a kill at any instant leaves the previous manifest, whose state
+  file is removed only after the new manifest is in place, and whose prefixes later appends do
+  not touch. A resume checks every file against it first (check_same_run) and refuses a
+  damaged, truncated or missing one with one line, before anything is read or cut back. Only
+  the newest checkpoint is kept: there is no older one to fall back to.
 
 The keyframe store (RUN/keyframes/) is flushed with every checkpoint; resuming cuts it back to
 what the checkpoint vouches for. Loop detection for keyframes whose results were not yet applied
