@@ -42,8 +42,9 @@ from lidar_slam.keyframes import write_atomic
 from lidar_slam.pipeline import Pipeline
 from lidar_slam.types import LoopConstraint
 
-CHECKPOINT_VERSION = 2  # 2: manifest.json with checksums, state-<generation>.npz
+CHECKPOINT_VERSION = 1  # of the run's identity (run.json): a run made before is the same run
 MANIFEST = "manifest.json"
+MANIFEST_VERSION = 1
 _RERUN = "cannot resume from this checkpoint; rerun with --overwrite to start again"
 # Per pipeline, the running sha256 of each growing file up to its length at the last checkpoint,
 # so a checkpoint hashes only what was appended since the one before.
@@ -77,24 +78,23 @@ def has_checkpoint(run_dir: Path) -> bool:
     check_same_run refuses): not a run killed before its first checkpoint."""
     d = _dir(run_dir)
     if not (d / MANIFEST).is_file():
-        return any(d.glob("state*.npz"))  # a lost manifest, or a checkpoint of version 1
+        return any(d.glob("state*.npz"))  # a lost manifest, or one from before manifests
     try:
         return json.loads((d / MANIFEST).read_text()).get("state") is not None
     except (OSError, ValueError, AttributeError):
         return True  # damaged: check_same_run says so
 
 
-def check_same_run(run_dir: Path, run: dict) -> None:
-    """Refuse to resume a run folder made with other input, range or config, or whose
-    checkpoint is damaged (see verify)."""
+def check_same_run(run_dir: Path, run: dict, *, verify_files: bool = True) -> None:
+    """Refuse to resume a run folder made with other input, range or config, or (unless
+    verify_files=False: only asking whether a finished run is this run) whose checkpoint is
+    damaged (see verify)."""
     path = _dir(run_dir) / "run.json"
     try:
         old, problem = json.loads(path.read_text()), None
     except (OSError, ValueError) as exc:
         old, problem = {}, exc
-    # a checkpoint of version 1 has no manifest: the version line below says why it is refused
-    older = problem is None and old.get("version") != run["version"]
-    if has_checkpoint(run_dir) and not (older and not (_dir(run_dir) / MANIFEST).is_file()):
+    if verify_files and has_checkpoint(run_dir):
         verify(run_dir)
     if problem is not None:
         raise InputError(path, f"cannot read it to resume ({problem})")
@@ -113,7 +113,8 @@ def verify(run_dir: Path) -> dict:
     d = _dir(run_dir)
     path = d / MANIFEST
     if not path.is_file():
-        raise InputError(path, f"missing, so the checkpoint cannot be checked; {_RERUN}")
+        raise InputError(path, f"missing (or a checkpoint of a lidar-slam without checksums), "
+                         f"so the checkpoint cannot be checked; {_RERUN}")
     try:
         manifest = json.loads(path.read_text())
         body = {k: v for k, v in manifest.items() if k != "sha256"}
@@ -122,6 +123,9 @@ def verify(run_dir: Path) -> dict:
         intact = False
     if not intact:
         raise InputError(path, f"damaged (its content does not match its own sha256); {_RERUN}")
+    if manifest.get("version") != MANIFEST_VERSION:
+        raise InputError(path, f"version {manifest.get('version')}, this lidar-slam reads "
+                         f"version {MANIFEST_VERSION}; {_RERUN}")
     for rel, want in manifest["files"].items():
         p = Path(run_dir) / rel
         if not p.is_file():
@@ -158,7 +162,7 @@ def _sha256_prefix(fh, start: int, end: int, h=None):
 
 
 def _write_manifest(d: Path, body: dict) -> None:
-    body = {"version": CHECKPOINT_VERSION, **body}
+    body = {"version": MANIFEST_VERSION, **body}
     write_atomic(d / MANIFEST, json.dumps({**body, "sha256": _sha256_json(body)}, indent=1)
                  + "\n")
 
