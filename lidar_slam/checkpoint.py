@@ -3,13 +3,21 @@
 RUN/checkpoint/ holds:
 - `run.json`: what the run is (input, start, scan count, the effective config); a resume with
   other input or another config is refused.
-- `state.npz`: written every `checkpoint.every_keyframes` keyframes via a temporary file and a
-  rename, so a kill at any instant leaves the previous checkpoint whole: the frames so far, the
-  odometry (poses, kiss-icp's local map points), front-end and keyframe-selector state, the loop
-  records and constraints applied to the graph, and how many keyframes and threshold deviations
-  are valid.
+- `state-<generation>.npz`: written every `checkpoint.every_keyframes` keyframes: the frames so
+  far, the odometry (poses, kiss-icp's local map points), front-end and keyframe-selector state,
+  the loop records and constraints applied to the graph, and how many keyframes and threshold
+  deviations are valid.
 - `deviations.bin`: every model deviation fed to kiss-icp's adaptive threshold (append-only,
   float64 4x4), replayed on resume to rebuild the threshold exactly.
+- `manifest.json`: the checkpoint itself: which state file it is, how many frames it holds,
+  and the length and sha256 of every file it depends on (run.json and the state whole; of
+  deviations.bin and the keyframe store's table.bin and points.bin, which grow after it, the
+  prefix it covers), plus a sha256 of the manifest's own content. Written last, atomically
+  (temporary file and rename): a kill at any instant leaves the previous manifest, whose state
+  file is removed only after the new manifest is in place, and whose prefixes later appends do
+  not touch. A resume checks every file against it first (check_same_run) and refuses a
+  damaged, truncated or missing one with one line, before anything is read or cut back. Only
+  the newest checkpoint is kept: there is no older one to fall back to.
 
 The keyframe store (RUN/keyframes/) is flushed with every checkpoint; resuming cuts it back to
 what the checkpoint vouches for. Loop detection for keyframes whose results were not yet applied
@@ -19,9 +27,11 @@ the same loop decisions as an uninterrupted one.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +42,13 @@ from lidar_slam.keyframes import write_atomic
 from lidar_slam.pipeline import Pipeline
 from lidar_slam.types import LoopConstraint
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 1  # of the run's identity (run.json): a run made before is the same run
+MANIFEST = "manifest.json"
+MANIFEST_VERSION = 1
+_RERUN = "cannot resume from this checkpoint; rerun with --overwrite to start again"
+# Per pipeline, the running sha256 of each growing file up to its length at the last checkpoint,
+# so a checkpoint hashes only what was appended since the one before.
+_HASHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _dir(run_dir: Path) -> Path:
@@ -50,27 +66,131 @@ def start_run(run_dir: Path, run: dict) -> None:
     """Record what this run is (a fresh run)."""
     d = _dir(run_dir)
     d.mkdir(parents=True, exist_ok=True)
+    for old in d.glob("state*.npz"):
+        old.unlink()
     write_atomic(d / "run.json", json.dumps(run, indent=1) + "\n")
     (d / "deviations.bin").write_bytes(b"")
+    _write_manifest(d, {"generation": 0, "state": None, "files": {}})
 
 
 def has_checkpoint(run_dir: Path) -> bool:
-    return (_dir(run_dir) / "state.npz").is_file()
+    """Whether the run folder holds a checkpoint to resume from (or the remains of one, which
+    check_same_run refuses): not a run killed before its first checkpoint."""
+    d = _dir(run_dir)
+    if not (d / MANIFEST).is_file():
+        return any(d.glob("state*.npz"))  # a lost manifest, or one from before manifests
+    try:
+        return json.loads((d / MANIFEST).read_text()).get("state") is not None
+    except (OSError, ValueError, AttributeError):
+        return True  # damaged: check_same_run says so
 
 
-def check_same_run(run_dir: Path, run: dict) -> None:
-    """Refuse to resume a run folder made with other input, range or config."""
+def check_same_run(run_dir: Path, run: dict, *, verify_files: bool = True) -> None:
+    """Refuse to resume a run folder made with other input, range or config, or (unless
+    verify_files=False: only asking whether a finished run is this run) whose checkpoint is
+    damaged (see verify)."""
     path = _dir(run_dir) / "run.json"
     try:
-        old = json.loads(path.read_text())
+        old, problem = json.loads(path.read_text()), None
     except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read it to resume ({exc})") from exc
+        old, problem = {}, exc
+    if verify_files and has_checkpoint(run_dir):
+        verify(run_dir)
+    if problem is not None:
+        raise InputError(path, f"cannot read it to resume ({problem})")
     for key, what in (("version", "checkpoint version"), ("input", "input"),
                       ("start", "--start"), ("n_scans", "--n-scans"), ("topic", "--topic"),
                       ("config", "config")):
         if old.get(key) != run[key]:
             raise InputError(run_dir, f"cannot resume: the run was made with another {what} "
                              f"(use --overwrite to start again)")
+
+
+def verify(run_dir: Path) -> dict:
+    """Check every file the checkpoint depends on against its manifest (length and sha256;
+    see the module doc); returns the manifest. Raises InputError naming the first file that is
+    missing, truncated or damaged (or the manifest itself)."""
+    d = _dir(run_dir)
+    path = d / MANIFEST
+    if not path.is_file():
+        raise InputError(path, f"missing (or a checkpoint of a lidar-slam without checksums), "
+                         f"so the checkpoint cannot be checked; {_RERUN}")
+    try:
+        manifest = json.loads(path.read_text())
+        body = {k: v for k, v in manifest.items() if k != "sha256"}
+        intact = manifest["sha256"] == _sha256_json(body)
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        intact = False
+    if not intact:
+        raise InputError(path, f"damaged (its content does not match its own sha256); {_RERUN}")
+    if manifest.get("version") != MANIFEST_VERSION:
+        raise InputError(path, f"version {manifest.get('version')}, this lidar-slam reads "
+                         f"version {MANIFEST_VERSION}; {_RERUN}")
+    for rel, want in manifest["files"].items():
+        p = Path(run_dir) / rel
+        if not p.is_file():
+            raise InputError(p, f"missing; {_RERUN}")
+        size = p.stat().st_size
+        if size < want["bytes"]:
+            raise InputError(p, f"truncated: {size} bytes, the checkpoint covers "
+                             f"{want['bytes']}; {_RERUN}")
+        if size != want["bytes"] and not want["grows"]:
+            raise InputError(p, f"changed: {size} bytes, the checkpoint wrote {want['bytes']}; "
+                             f"{_RERUN}")
+        with open(p, "rb") as fh:
+            if _sha256_prefix(fh, 0, want["bytes"]).hexdigest() != want["sha256"]:
+                raise InputError(p, f"damaged: its first {want['bytes']} bytes do not match "
+                                 f"the checkpoint's sha256; {_RERUN}")
+    return manifest
+
+
+def _sha256_json(body: dict) -> str:
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def _sha256_prefix(fh, start: int, end: int, h=None):
+    """h (a new sha256 when None) updated with bytes start..end of the open file fh."""
+    h = hashlib.sha256() if h is None else h
+    fh.seek(start)
+    while start < end:
+        chunk = fh.read(min(1 << 20, end - start))
+        if not chunk:
+            break
+        h.update(chunk)
+        start += len(chunk)
+    return h
+
+
+def _write_manifest(d: Path, body: dict) -> None:
+    body = {"version": MANIFEST_VERSION, **body}
+    write_atomic(d / MANIFEST, json.dumps({**body, "sha256": _sha256_json(body)}, indent=1)
+                 + "\n")
+
+
+def _read_manifest(d: Path) -> dict:
+    try:
+        return json.loads((d / MANIFEST).read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(d / MANIFEST, f"cannot read it ({exc}); {_RERUN}") from exc
+
+
+def _growing_entry(pipe: Pipeline, run_dir: Path, rel: str) -> dict:
+    """Manifest entry of a file that only grows: its length now and the sha256 of all of it,
+    hashing only what was appended since the pipe's last checkpoint."""
+    path = Path(run_dir) / rel
+    hashes = _HASHES.setdefault(pipe, {})
+    size = path.stat().st_size
+    done, h = hashes.get(path, (0, None))
+    if done > size:  # cut back since (cannot happen within one pipe): hash it all again
+        done, h = 0, None
+    with open(path, "rb") as fh:
+        h = _sha256_prefix(fh, done, size, None if h is None else h.copy())
+    hashes[path] = (size, h)
+    return {"bytes": size, "sha256": h.hexdigest(), "grows": True}
+
+
+def _whole_entry(data: bytes) -> dict:
+    return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest(), "grows": False}
 
 
 def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
@@ -108,7 +228,20 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
     }
     buf = io.BytesIO()
     np.savez(buf, **arrays)
-    write_atomic(d / "state.npz", buf.getvalue())
+    state = buf.getvalue()
+    generation = _read_manifest(d)["generation"] + 1
+    name = f"state-{generation:06d}.npz"
+    write_atomic(d / name, state)
+    kf = os.path.relpath(r.store.root, run_dir)
+    files = {"checkpoint/run.json": _whole_entry((d / "run.json").read_bytes()),
+             f"checkpoint/{name}": _whole_entry(state)}
+    for rel in ("checkpoint/deviations.bin", f"{kf}/table.bin", f"{kf}/points.bin"):
+        files[rel] = _growing_entry(pipe, run_dir, rel)
+    _write_manifest(d, {"generation": generation, "state": name, "frames": meta["frames"],
+                        "files": files})
+    for old in d.glob("state*.npz"):  # only now: until here, the previous manifest held
+        if old.name != name:
+            old.unlink()
 
 
 def _record_json(rec) -> dict:
@@ -124,8 +257,12 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     from lidar_slam.loop.closer import LoopRecord
 
     d = _dir(run_dir)
-    with np.load(d / "state.npz") as z:
-        a = {k: z[k] for k in z.files}
+    state = d / _read_manifest(d)["state"]
+    try:
+        with np.load(state) as z:
+            a = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as exc:  # verify() would have said which file
+        raise InputError(state, f"cannot read it ({exc}); {_RERUN}") from exc
     meta = json.loads(str(a.pop("meta")))
     r = pipe.result
     r.indices = [int(i) for i in a["indices"]]
