@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from lidar_slam.io.rosbag import RosbagSource, _open_bag, decode_pointcloud2
+from lidar_slam.io.rosbag import RosbagSource, decode_pointcloud2, open_bag
 
 ROOT = Path(sys.argv[1] if len(sys.argv) > 1 else Path(__file__).parents[2] / "shared/data/rosbags")
 CONTAINERS = ["ouster_os1_64_points_ros1_profile.mcap",
@@ -27,7 +27,7 @@ def main() -> None:
         t2 = time.perf_counter()
         print(f"{name}: open {1e3 * (t1 - t0):.1f} ms, {len(scans)} scans in "
               f"{1e3 * (t2 - t1):.1f} ms, points {[len(s.points) for s in scans]}")
-    with _open_bag(ROOT / CONTAINERS[1]) as bag:
+    with open_bag(ROOT / CONTAINERS[1]) as bag:
         msg = next(bag.raw_messages("/os1_cloud_node/points"))[0]()
     runs = 50
     t0 = time.perf_counter()

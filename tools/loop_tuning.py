@@ -273,7 +273,7 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     from lidar_slam.io.sources import open_source
     from lidar_slam.keyframes import KeyframeReader
     from lidar_slam.loop.closer import LoopDetector
-    from lidar_slam.loop.verify import query_side
+    from lidar_slam.loop.verify import match_side, query_side
 
     raw = yaml.safe_load((run / "config.yaml").read_text())
     raw["loop"]["scan_context"]["threshold"] = threshold
@@ -301,13 +301,14 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
             cands = det.candidates(k, pts)
             query = query_side(det.submap(k, vcfg.submap_radius, k), vcfg) if cands else None
             for rank, c in enumerate(cands[: cfg.loop.max_verify]):
-                r = verify(c, query, det._match_side(c.match, k), vcfg)
+                side = match_side(det.submap(c.match, vcfg.submap_radius, k), vcfg)
+                r = verify(c, query, side, vcfg)
                 pairs.append((kf.frame_index, det.store.frame_index(c.match)))
                 Ts.append(r.T_match_query)
                 rows.append(dict(kf=k, rank=rank, distance=float(c.score),
                                  passed=bool(r.accepted), margin=float(r.margin),
                                  fitness=float(r.fitness)))
-            det._index(k, pts)
+            det.index.add(k, pts, det.path_m(k), det.store.stamp_s(k))
     if rows:  # scored once: loop_precision_recall also finds the revisits of the whole sequence
         correct = metrics.loop_precision_recall(np.array(pairs), np.array(Ts), gt,
                                                 min_frame_gap=0).correct

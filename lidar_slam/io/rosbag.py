@@ -617,7 +617,7 @@ def _topic_messages(bag: _BagReader, topic: str) -> Iterator[Any]:
 
 
 @contextmanager
-def _open_bag(path: Path) -> Iterator[_BagReader]:
+def open_bag(path: Path) -> Iterator[_BagReader]:
     """An open bag; the errors of rosbags and of the readers here become InputError naming
     the file."""
     bag = _open_reader(path)
@@ -649,7 +649,7 @@ class RosbagSource:
             raise InputError(self.path, "folder is not a ROS2 bag (no metadata.yaml)")
         self.name = self.path.stem if self.path.is_file() else self.path.name
         self.ground_truth: np.ndarray | None = None
-        with _open_bag(self.path) as bag:
+        with open_bag(self.path) as bag:
             topics = bag.topics()
             recovered = bag.recovered
         self.topic = self._pick_topic(topics, topic)
@@ -698,7 +698,7 @@ class RosbagSource:
         kept: list[int] = []
         duplicate = backwards = n_read = 0
         last = None
-        with _open_bag(self.path) as bag:
+        with open_bag(self.path) as bag:
             for n_read, deserialize in enumerate(_topic_messages(bag, self.topic), 1):
                 stamp = header_stamp_ns(self._message(n_read - 1, deserialize))
                 if last is not None and stamp <= last:
@@ -731,7 +731,7 @@ class RosbagSource:
         wanted = {position: index for index, position in enumerate(kept[start:stop], start)}
         last = kept[stop - 1]
         i = -1
-        with _open_bag(self.path) as bag:
+        with open_bag(self.path) as bag:
             for i, deserialize in enumerate(_topic_messages(bag, self.topic)):
                 if i > last:
                     break
