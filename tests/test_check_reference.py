@@ -8,9 +8,7 @@ line rests on this, so it is pinned here.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
+import importlib
 
 import numpy as np
 import pytest
@@ -19,15 +17,9 @@ from lidar_slam.geometry import inverse, make_pose, yaw_matrix
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import read_kitti_poses
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "forensics" / "check_reference.py"
-
 
 def load_tool():
-    spec = importlib.util.spec_from_file_location("check_reference_tool", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module("tools.forensics.check_reference")
 
 
 def _square(n: int = 40, side_m: float = 5.0) -> np.ndarray:
