@@ -203,8 +203,11 @@ class Pipeline:
 
 def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = None,
         on_scan: Callable[[Scan, RunResult], None] | None = None) -> RunResult:
-    """Process scans in order and return the result (its keyframe store stays open); errors
-    propagate: the CLI keeps the frames computed so far by driving Pipeline itself."""
+    """Process scans in order and return the result (its keyframe store stays open): the bare
+    loop over Pipeline, for library use and tests, with no run folder rules, signals or outputs,
+    and errors propagate. The run driver (what `lidar-slam run` and `batch` do: --out rules,
+    resume, signals, the frames so far kept on an error, the outputs) is
+    lidar_slam.run.run_sequence."""
     pipe = Pipeline(cfg, run_dir)
     try:
         for scan in scans:
