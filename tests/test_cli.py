@@ -96,7 +96,7 @@ def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16):
     from lidar_slam import pipeline
     from lidar_slam.config import load_config
     from lidar_slam.io.sources import open_source
-    from lidar_slam.outputs import write_run
+    from lidar_slam.run.outputs import write_run
 
     src = open_source(kitti16)
 
@@ -528,7 +528,7 @@ def test_second_signal_while_writing_is_deferred(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    from lidar_slam import outputs
+    from lidar_slam.run import outputs
     from lidar_slam.cli import app
 
     real = outputs.write_map
@@ -661,10 +661,10 @@ def test_single_scan_file_and_kitti_raw_drive(tmp_path, kitti16):
 def test_terminal_progress_bar_has_an_eta(monkeypatch):
     from rich.progress import TimeRemainingColumn
 
-    from lidar_slam import cli
+    from lidar_slam.run.progress import Progress
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
-    progress = cli._Progress("x", 3)
+    progress = Progress("x", 3)
     try:
         assert any(isinstance(c, TimeRemainingColumn) for c in progress.bar.columns)
         progress.tick()
