@@ -66,7 +66,7 @@ class Pipeline:
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
         self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
-        # the run folder's store (lidar_slam.checkpoint cuts it back to the checkpoint).
+        # the run folder's store (lidar_slam.run.checkpoint cuts it back to it).
         self.result = RunResult(KeyframeStore(None if run_dir is None
                                               else Path(run_dir) / "keyframes", keep=resume))
         self.backend = self.loops = None

@@ -670,3 +670,18 @@ def test_terminal_progress_bar_has_an_eta(monkeypatch):
         progress.tick()
     finally:
         progress.close()
+
+
+def test_the_library_and_its_ray_jobs_import_without_typer():
+    """Only lidar_slam.cli imports typer: the runner, batch and its Ray jobs (run_job,
+    simulate_job) and localize's driver load without it (batch imported the CLI's
+    run_sequence, so every Ray worker imported typer)."""
+    code = ("import sys\n"
+            "import lidar_slam.batch, lidar_slam.run, lidar_slam.run.localize, "
+            "lidar_slam.sim.jobs\n"
+            "from lidar_slam.batch import run_job\n"
+            "from lidar_slam.sim.jobs import simulate_job\n"
+            "print('typer' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "False"
