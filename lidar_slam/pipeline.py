@@ -66,7 +66,7 @@ class Pipeline:
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
         self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
-        # the run folder's store (lidar_slam.checkpoint cuts it back to the checkpoint).
+        # the run folder's store (lidar_slam.run.checkpoint cuts it back to it).
         self.result = RunResult(KeyframeStore(None if run_dir is None
                                               else Path(run_dir) / "keyframes", keep=resume))
         self.backend = self.loops = None
@@ -203,8 +203,11 @@ class Pipeline:
 
 def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = None,
         on_scan: Callable[[Scan, RunResult], None] | None = None) -> RunResult:
-    """Process scans in order and return the result (its keyframe store stays open); errors
-    propagate: the CLI keeps the frames computed so far by driving Pipeline itself."""
+    """Process scans in order and return the result (its keyframe store stays open): the bare
+    loop over Pipeline, for library use and tests, with no run folder rules, signals or outputs,
+    and errors propagate. The run driver (what `lidar-slam run` and `batch` do: --out rules,
+    resume, signals, the frames so far kept on an error, the outputs) is
+    lidar_slam.run.run_sequence."""
     pipe = Pipeline(cfg, run_dir)
     try:
         for scan in scans:

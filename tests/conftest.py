@@ -61,7 +61,7 @@ class SimMap:
     seq: Path
     run: Path
     run_summary: dict
-    truth: object  # lidar_slam.simulate.SimSummary
+    truth: object  # lidar_slam.sim.SimSummary
 
 
 SIM_SCANS = 180
@@ -71,7 +71,7 @@ MAP_SCANS = 180
 @pytest.fixture(scope="session")
 def sim_map(tmp_path_factory) -> SimMap:
     """Simulate 07 frames 0..179 and map them once per test session."""
-    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(shared_path("kitti_gt"), 7)
     root = tmp_path_factory.mktemp("sim_map")

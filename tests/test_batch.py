@@ -23,7 +23,7 @@ import psutil
 import pytest
 
 from conftest import require_ray
-from lidar_slam.results import COLUMNS
+from lidar_slam.batch.results import COLUMNS
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "sample_scans"
@@ -355,7 +355,7 @@ def test_sequence_names_and_globs(tmp_path):
 
 
 def test_total_row_pools_drift_over_segments_and_ate_over_frames():
-    from lidar_slam.results import SequenceResult, error_row, total_row
+    from lidar_slam.batch.results import SequenceResult, error_row, total_row
 
     def ok(name, frames, t_err, segs, ate, computed):
         row = dict.fromkeys(COLUMNS)

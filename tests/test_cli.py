@@ -96,7 +96,7 @@ def test_interrupted_run_keeps_frames_so_far(tmp_path, kitti16):
     from lidar_slam import pipeline
     from lidar_slam.config import load_config
     from lidar_slam.io.sources import open_source
-    from lidar_slam.outputs import write_run
+    from lidar_slam.run.outputs import write_run
 
     src = open_source(kitti16)
 
@@ -528,7 +528,7 @@ def test_second_signal_while_writing_is_deferred(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    from lidar_slam import outputs
+    from lidar_slam.run import outputs
     from lidar_slam.cli import app
 
     real = outputs.write_map
@@ -661,12 +661,27 @@ def test_single_scan_file_and_kitti_raw_drive(tmp_path, kitti16):
 def test_terminal_progress_bar_has_an_eta(monkeypatch):
     from rich.progress import TimeRemainingColumn
 
-    from lidar_slam import cli
+    from lidar_slam.run.progress import Progress
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
-    progress = cli._Progress("x", 3)
+    progress = Progress("x", 3)
     try:
         assert any(isinstance(c, TimeRemainingColumn) for c in progress.bar.columns)
         progress.tick()
     finally:
         progress.close()
+
+
+def test_the_library_and_its_ray_jobs_import_without_typer():
+    """Only lidar_slam.cli imports typer: the runner, batch and its Ray jobs (run_job,
+    simulate_job) and localize's driver load without it (batch imported the CLI's
+    run_sequence, so every Ray worker imported typer)."""
+    code = ("import sys\n"
+            "import lidar_slam.batch, lidar_slam.run, lidar_slam.run.localize, "
+            "lidar_slam.sim.jobs\n"
+            "from lidar_slam.batch import run_job\n"
+            "from lidar_slam.sim.jobs import simulate_job\n"
+            "print('typer' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "False"

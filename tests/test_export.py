@@ -55,7 +55,7 @@ def test_occupancy_png_yaml_round_trip(tmp_path):
 @pytest.mark.shared_data
 def test_occupancy_grid_of_a_simulated_street(sim_map, tmp_path, kitti_gt):
     from lidar_slam.metrics import umeyama_rigid
-    from lidar_slam.simulate import CLASSES, load_kitti_truth, sequence_world
+    from lidar_slam.sim import CLASSES, load_kitti_truth, sequence_world
 
     proc = lidar_slam("export", sim_map.run, "--occupancy", "--out", tmp_path / "occ")
     assert proc.returncode == 0, proc.stderr

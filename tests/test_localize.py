@@ -134,7 +134,7 @@ def test_a_jump_in_the_data_is_relocalised_within_5_frames(sim_map, tmp_path):
 
 @pytest.mark.shared_data
 def test_scans_of_another_place_stay_lost(sim_map, tmp_path, kitti_gt):
-    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(kitti_gt, 0)  # another simulated sequence: another world
     simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "s00", n_scans=20,
@@ -248,7 +248,7 @@ def test_a_jump_in_an_indoor_set_is_relocalised_not_tracked(ouster_map, tmp_path
 
 @pytest.mark.shared_data
 def test_scans_of_another_place_stay_lost_in_an_indoor_map(ouster_map, tmp_path, kitti_gt):
-    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     _, run, _ = ouster_map
     kt = load_kitti_truth(kitti_gt, 0)  # a simulated street: nothing like the building

@@ -35,7 +35,7 @@ def test_slow_scans_refined_against_keyframes_keep_the_turn_kiss_icp_loses(kitti
     loses ~3 deg and ~2 m; with the slow scans refined (the default) both stay small."""
     from lidar_slam import pipeline
     from lidar_slam.geometry import inverse, rotation_angle_deg
-    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(kitti_gt, 7)
     sim = simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "seq", start=636,
@@ -64,8 +64,9 @@ def test_slow_scans_refined_against_keyframes_keep_the_turn_kiss_icp_loses(kitti
 def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe in the middle of a slow stretch, restored into a fresh
     pipeline, continues with the same refinement target: every later pose within 1e-9."""
-    from lidar_slam import checkpoint, pipeline
-    from lidar_slam.simulate import load_kitti_truth, simulate_sequence
+    from lidar_slam import pipeline
+    from lidar_slam.run import checkpoint
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(kitti_gt, 7)
     simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "seq", start=636,

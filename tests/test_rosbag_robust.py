@@ -306,7 +306,7 @@ def test_repeated_and_backwards_stamps_are_dropped_counted_and_warned_once(
 
 
 def test_start_and_count_number_the_kept_scans_so_a_resumed_run_sees_the_same_ones(tmp_path):
-    """cli.run_sequence reads scans(start + done, total - done) after `done` frames: the
+    """lidar_slam.run.run_sequence reads scans(start + done, total - done) after `done` frames: the
     numbering must be that of the scans kept, not of the messages."""
     stamps = [STAMP_NS + round(t * PERIOD_NS) for t in BAD_STAMPS]
     source = RosbagSource(write_ros1(tmp_path / "bad.bag", stamps))

@@ -16,7 +16,7 @@ from lidar_slam.io.trajectory import (
     read_times,
 )
 from lidar_slam.o3d import o3d
-from lidar_slam.simulate import (
+from lidar_slam.sim import (
     CLASSES,
     SENSORS,
     PoseInterpolator,
@@ -228,7 +228,7 @@ def test_simulate_elevation_error_biases_points_like_kittis_lasers():
     # computed with: ground returns then come back farther away and too low, as on real KITTI.
     import dataclasses
 
-    from lidar_slam.simulate import SENSORS
+    from lidar_slam.sim import SENSORS
 
     assert SENSORS["hdl64"].elevation_error_deg == pytest.approx(0.2)
     stamps, poses = straight(3, speed_mps=0.0)

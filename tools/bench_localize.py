@@ -239,7 +239,7 @@ def occupancy_metrics(n_frames: int, run: Path, occ: Path, kitti_gt: Path, seque
     from PIL import Image
 
     from lidar_slam.saved_map import open_map
-    from lidar_slam.simulate import (
+    from lidar_slam.sim import (
         CLASSES,
         SENSORS,
         load_kitti_truth,
@@ -302,7 +302,7 @@ def case_occupancy_buildings(seq: Path, out: Path, kitti_gt: Path, sequence: str
     """The same drive simulated on a street of buildings only (WorldParams(objects=False): the
     same facades, no cars, poles, trees, bushes or clutter), mapped and gridded: where every
     obstacle is a building face, the share of occupied cells within 0.5 m of one."""
-    from lidar_slam.simulate import WorldParams, load_kitti_truth, simulate_sequence
+    from lidar_slam.sim import WorldParams, load_kitti_truth, simulate_sequence
 
     params = WorldParams(objects=False)
     n = len(truth(seq))

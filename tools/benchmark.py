@@ -11,7 +11,7 @@ over the repeats (interleaved, so every system sees the same machine load), peak
 repeats. Accuracy comes from lidar_slam.evaluate.run_eval and lidar_slam.metrics on the outputs of
 the last repeat, against the sequence's ground truth (reference poses for the Ouster set).
 
-lidar-slam's rows are scored by the code of `lidar-slam batch` (lidar_slam.results.run_row: the
+lidar-slam's rows are scored by the code of `lidar-slam batch` (lidar_slam.batch.results.run_row: the
 same t_err, r_err, ATE and counts as a batch's results table), and its runs also get that table,
 DIR/lidar-slam/results.{md,json,csv}, so a benchmark and a batch can be compared row by row.
 
@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam import evaluate, metrics, results
+from lidar_slam import evaluate, metrics
+from lidar_slam.batch import results
 from lidar_slam.errors import LidarSlamError
 from lidar_slam.geometry import from_xyz_quat, interpolate, inverse
 from lidar_slam.io.sources import open_source

@@ -33,8 +33,8 @@ import psutil
 
 from lidar_slam.config import load_config
 from lidar_slam.geometry import make_pose
-from lidar_slam.outputs import write_run
 from lidar_slam.pipeline import Pipeline
+from lidar_slam.run.outputs import write_run
 from lidar_slam.types import Scan
 
 REPO = Path(__file__).resolve().parents[1]
@@ -88,7 +88,7 @@ def main() -> None:
     args = ap.parse_args()
     # Here, not at the top: the loop worker process (spawned) imports this module, and the
     # simulator's open3d would add ~230 MB to it that `lidar-slam run`'s worker does not have.
-    from lidar_slam.simulate import (PoseInterpolator, build_world, get_sensor, load_kitti_truth,
+    from lidar_slam.sim import (PoseInterpolator, build_world, get_sensor, load_kitti_truth,
                                      place_on_terrain, simulate_scan)
 
     args.out.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
-from lidar_slam.simulate import SENSORS, WorldParams, simulate_sequence
+from lidar_slam.sim import SENSORS, WorldParams, simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -74,7 +74,7 @@ def loop_trajectory() -> tuple[np.ndarray, np.ndarray]:
 README = """# sample_scans: a small simulated loop
 
 Made by `python tools/make_sample_scans.py` (deterministic: seed {seed}); see
-`lidar_slam/simulate.py` for the simulator. Not real data.
+`lidar_slam/sim/` for the simulator. Not real data.
 
 - Sensor: VLP-16-like, 16 beams at -15..+15 deg, {n_az} azimuth steps per sweep ({res:.1f} deg,
   reduced from the real 0.1-0.4 deg to keep the folder small), {rate:g} Hz sweeps, max range

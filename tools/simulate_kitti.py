@@ -28,7 +28,7 @@ from lidar_slam.io.trajectory import (
     read_times,
 )
 from lidar_slam.metrics import ate, kitti_drift
-from lidar_slam.simulate import PoseInterpolator, load_kitti_truth, simulate_sequence
+from lidar_slam.sim import PoseInterpolator, load_kitti_truth, simulate_sequence
 
 GT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_gt"
 # 08's truth climbs ~0.18 m per frame while level over frames 0..~120 (see kitti_gt/README.txt).

@@ -49,7 +49,7 @@ def ray_installed() -> bool:
 def _code_root() -> str | None:
     """The folder lidar_slam was imported from when it is a source tree (an editable install or
     PYTHONPATH), so that cluster workers import the same code where that folder is shared."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]  # lidar_slam/batch/fleet.py -> the source root
     if any(part in ("site-packages", "dist-packages") for part in root.parts):
         return None
     return str(root)

@@ -1,0 +1,17 @@
+"""The `lidar-slam` command: one module per command, each only parsing its options, calling
+the library and printing. `app` is the entry point (pyproject: lidar_slam.cli:app).
+
+common: the app, the one-line error handling (reports_errors) and the summary table; run,
+batch, optimize, eval, simulate, localize, export: the commands.
+"""
+
+import importlib
+
+from lidar_slam.cli.common import app, reports_errors
+
+# Importing a command's module registers it with app; --help lists them in this order.
+COMMANDS = ("run", "batch", "optimize", "eval", "simulate", "localize", "export")
+for _name in COMMANDS:
+    importlib.import_module(f"lidar_slam.cli.{_name}")
+
+__all__ = ["COMMANDS", "app", "reports_errors"]

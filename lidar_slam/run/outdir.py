@@ -1,0 +1,65 @@
+"""The --out rules of the commands that write a folder, and the range of scans a run reads."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from lidar_slam.errors import RunFailed
+
+# Every file and folder `run` writes into --out: --overwrite deletes these and nothing else.
+RUN_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.ply", "loops.csv",
+               "graph.g2o", "config.yaml", "summary.json", "error_traceback.txt", "keyframes",
+               "checkpoint")
+
+
+def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: bool = False
+                    ) -> bool:
+    """The one rule for commands that write a folder: an --out that already holds files is
+    refused unless --overwrite (our files are deleted first) or --resume. Returns True when
+    there is a run to resume."""
+    if overwrite and resume:
+        raise RunFailed("--overwrite and --resume exclude each other")
+    if out.exists() and not out.is_dir():
+        raise RunFailed(f"{out}: --out is a file, not a folder")
+    blocker = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise RunFailed(f"{out}: cannot create --out: {blocker} is a file, not a folder")
+    held = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if held and resume:
+        return True
+    if held and not overwrite:
+        flag = "--overwrite or --resume" if ours is RUN_OUTPUTS else "--overwrite"
+        raise RunFailed(f"{out}: --out already holds files ({', '.join(held[:3])}"
+                        f"{', ...' if len(held) > 3 else ''}); pass {flag}")
+    for name in held:
+        if name in ours:
+            path = out / name
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    out.mkdir(parents=True, exist_ok=True)  # fail before the run, not after it
+    return False
+
+
+def discard_run(out: Path, created: bool) -> None:
+    """Remove what a run that produced no frame wrote (and --out itself if the run made it), so
+    no 0-frame run folder is left behind."""
+    for name in RUN_OUTPUTS:
+        if name == "error_traceback.txt":
+            continue
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists():
+            path.unlink()
+    if created and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+
+
+def scan_range(path: Path, start: int, n_scans: int | None, available: int,
+               unit: str = "scan", count: str | None = None) -> int:
+    """How many of the `available` scans (or poses) from --start on a command reads (all, or
+    --n-scans at most); a --start past the last one is an error naming `path`."""
+    if start >= available:
+        raise RunFailed(f"{path}: --start {start} is past the last {unit} "
+                        f"({f'{available} {unit}s' if count is None else count})")
+    return available - start if n_scans is None else min(n_scans, available - start)

@@ -1,0 +1,240 @@
+"""The run driver: one input into one run folder, as `lidar-slam run` and every `batch` task do.
+
+run_sequence applies the --out rules, resumes from a checkpoint, feeds the scans to the
+pipeline until the end, a signal or an error (keeping the frames so far), and writes the
+outputs. It prints nothing: the summary comes back in a RunOutcome, and a run that stopped
+early carries its one-line RunFailed (a run that wrote nothing raises it).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from lidar_slam.errors import EXIT_INTERRUPTED, LidarSlamError, RunFailed
+from lidar_slam.run.outdir import RUN_OUTPUTS, discard_run, prepare_out_dir, scan_range
+from lidar_slam.run.progress import progress as make_progress
+from lidar_slam.run.signals import StopSignals
+
+log = logging.getLogger("lidar_slam")
+
+
+def _has_display() -> bool:
+    """Whether a window can open (the rerun viewer): always on macOS and Windows, elsewhere
+    when an X11 or Wayland display is set."""
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"))
+
+
+def open_viewer(viz: bool, rrd: Path | None):
+    """The rerun logger for --viz / --rrd, or None. Without a display --viz is dropped with one
+    warning (the viewer would fail, and rerun would end the run in a traceback)."""
+    if viz and not _has_display():
+        log.warning("--viz: no display (DISPLAY / WAYLAND_DISPLAY unset), so no viewer; the run "
+                    "goes on (record with --rrd FILE and open it with `rerun FILE` elsewhere)")
+        viz = False
+    if not viz and rrd is None:
+        return None
+    from lidar_slam.viz import RerunViz
+
+    return RerunViz(spawn=viz, rrd_path=rrd)
+
+
+def _deskew_state(cfg, n_timed: int, n_read: int) -> str:
+    """What deskew did, for summary.json: on, off by config, or off for lack of point times."""
+    if not cfg.data.deskew:
+        return "off (--no-deskew or data.deskew: false)"
+    if n_timed == 0:
+        return "off (the scans carry no per-point times)"
+    if n_timed < n_read:
+        return f"on for the {n_timed} of {n_read} scans with per-point times"
+    return "on"
+
+
+@dataclass
+class _LoopEnd:
+    """How the scan loop of a run ended: a bad-input or an internal error (traceback), and
+    how many scans it read, how many with per-point times."""
+
+    error: str | None = None
+    internal_error: str | None = None
+    n_read: int = 0
+    n_timed: int = 0
+
+
+def _process_scans(pipe, scans, out: Path, stop: StopSignals, progress) -> _LoopEnd:
+    """Feed the scans to the pipeline until the end, a signal or an error, streaming the
+    odometry and writing checkpoints; errors are kept, so the frames so far can be written."""
+    import traceback
+
+    from lidar_slam.run import checkpoint
+    from lidar_slam.run.outputs import OdometryStream
+
+    end = _LoopEnd()
+    stream = OdometryStream(out, pipe.result.odom_poses)
+    every = pipe.cfg.checkpoint.every_keyframes
+    try:
+        for scan in scans:
+            if stop.received:
+                break
+            n_kf = len(pipe.result.store)
+            pipe.process(scan)
+            end.n_read += 1
+            end.n_timed += scan.point_times is not None
+            progress.tick()
+            stream.append(pipe.result.odom_poses[-1])
+            if every and len(pipe.result.store) != n_kf and len(pipe.result.store) % every == 0:
+                checkpoint.save(out, pipe, pipe.loops_applied_upto)
+    except KeyboardInterrupt:
+        stop.received = True
+    except LidarSlamError as exc:
+        end.error = str(exc)
+    except Exception:  # a bug must not cost the frames already computed: keep them, report it
+        end.internal_error = traceback.format_exc()
+        log.error("internal error after %d frames", len(pipe.result.indices))
+    finally:
+        progress.close()
+        stream.close()
+    return end
+
+
+def _nothing_written(end: _LoopEnd, interrupted: bool, out: Path, data: Path, frames: int,
+                     cfg) -> RunFailed:
+    """The one line for a run that ended without a frame worth writing (nothing was written)."""
+    if end.internal_error:
+        from lidar_slam.io.atomic import write_text_atomic
+
+        out.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(out / "error_traceback.txt", end.internal_error)
+        return RunFailed(f"internal error before the first scan (traceback in "
+                         f"{out / 'error_traceback.txt'})", 1)
+    if end.error:
+        return RunFailed(end.error)
+    if interrupted:
+        return RunFailed("interrupted before the first scan; nothing written", EXIT_INTERRUPTED)
+    return RunFailed(f"{data}: no valid points in any of the {frames} scans read (all empty, "
+                     f"NaN, fewer than data.min_points {cfg.data.min_points}, or outside "
+                     f"data.min_range_m..max_range_m {cfg.data.min_range_m:g}.."
+                     f"{cfg.data.max_range_m:g} m); nothing written")
+
+
+def _stop_reason(end: _LoopEnd, stop: StopSignals) -> str:
+    """Why the scan loop ended, for summary.json: the input's end, a signal, or an error."""
+    if end.internal_error:
+        return "internal error (traceback in error_traceback.txt)"
+    if end.error:
+        return f"input error: {end.error}"
+    if stop.received:
+        return f"interrupted ({stop.name or 'KeyboardInterrupt'})"
+    return "end of input"
+
+
+def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFailed | None:
+    """The one line of a run that stopped early (its frames so far written), or None."""
+    if end.internal_error:
+        return RunFailed(f"internal error (traceback in {out / 'error_traceback.txt'}); the "
+                         f"{frames} frames so far written to {out}", 1)
+    if end.error:
+        return RunFailed(f"{end.error} (stopped there; frames so far written to {out})")
+    if stop.received:
+        return RunFailed(f"interrupted; the {frames} frames so far written to {out}",
+                         EXIT_INTERRUPTED)
+    return None
+
+
+@dataclass
+class RunOutcome:
+    """What run_sequence wrote: the summary, the source's ground truth (all input scans, or
+    None), and the one-line error of a run that stopped early (its frames so far written)."""
+
+    summary: dict
+    ground_truth: object | None
+    failure: RunFailed | None = None
+
+
+def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
+    """Apply the --out rules; whether there is a checkpoint of this same run to resume."""
+    from lidar_slam.run import checkpoint
+
+    resuming = prepare_out_dir(out, RUN_OUTPUTS, overwrite, resume)
+    if resuming and not checkpoint.has_checkpoint(out):
+        if (out / "checkpoint" / "run.json").is_file():
+            checkpoint.check_same_run(out, identity)
+        prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)  # killed before its first checkpoint
+        return False
+    if resuming:
+        checkpoint.check_same_run(out, identity)
+    return resuming
+
+
+def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: int = 0,
+                 n_scans: int | None = None, topic: str | None = None,
+                 overrides: dict | None = None, viz: bool = False, rrd: Path | None = None,
+                 overwrite: bool = False, resume: bool = False,
+                 progress: bool = True) -> RunOutcome:
+    """Everything `lidar-slam run` does for one input, without printing: the run-folder rules,
+    resume, signals, the pipeline and the outputs. `run` and every `batch` task call this.
+    Raises RunFailed when nothing was written."""
+    from lidar_slam import __version__
+    from lidar_slam.config import load_config
+    from lidar_slam.io.atomic import write_text_atomic
+    from lidar_slam.io.sources import open_source, read_ahead
+    from lidar_slam.pipeline import Pipeline
+    from lidar_slam.provenance import git_commit
+    from lidar_slam.run import checkpoint
+    from lidar_slam.run.outputs import write_run
+
+    cfg = load_config(config, overrides)
+    source = open_source(data, topic=topic,
+                         kitti_vertical_correction=cfg.data.kitti_vertical_correction)
+    total = scan_range(data, start, n_scans, len(source))
+    created = not out.exists()
+    identity = checkpoint.describe_run(data, start, n_scans, topic, cfg)
+    resuming = _resuming(out, identity, overwrite, resume)
+    visualizer = open_viewer(viz, rrd)
+    t0 = time.perf_counter()
+    stop = StopSignals()
+    with stop:  # from here on, a signal stops the run after the scan in hand
+        pipe = Pipeline(cfg, out, visualizer, resume=resuming)
+        pipe.frames_total = total
+        done = 0
+        if resuming:
+            done = checkpoint.restore(out, pipe)
+            log.warning("resuming %s at frame %d of %d", out, done, total)
+        else:
+            checkpoint.start_run(out, identity)
+        label = f"{source.name}:{source.topic}" if source.topic else source.name
+        end = _process_scans(pipe, read_ahead(source.scans(start + done, total - done)), out,
+                             stop, make_progress(label, total, done, shown=progress))
+        with stop.deferred():  # a signal now waits until the outputs are written
+            frames = len(pipe.result.indices)
+            skipped = pipe.result.skipped_empty + pipe.result.skipped_small
+            if frames == skipped:  # no frame, or no scan with enough valid points
+                pipe.close()
+                discard_run(out, created)
+                raise _nothing_written(end, stop.received, out, data, frames, cfg)
+            result = pipe.finish()
+            status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
+                      "frames_requested": total}
+            if end.error:
+                status["stopped_by_error"] = end.error
+            run_info = {"input": str(data), "input_kind": source.kind, "topic": source.topic,
+                        "config_overlay": str(config) if config is not None else None,
+                        "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
+                        "input_notes": source.input_notes, "start": start,
+                        "resumed_at_frame": done, "version": __version__,
+                        "git_commit": git_commit()}
+            summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
+                                extra={**status, **run_info})
+            pipe.close()
+            if end.internal_error:
+                write_text_atomic(out / "error_traceback.txt", end.internal_error)
+    if visualizer is not None:
+        visualizer.finish(result, out / "map.ply")
+    return RunOutcome(summary, source.ground_truth,
+                      _failure(end, stop, out, summary["frames"]))

@@ -1,0 +1,54 @@
+"""A spinning-lidar simulator: a procedural street world along a trajectory, ray cast with open3d.
+
+Modules: sensor (lidar models, poses between stamps), world (the street world), sequence (sweeps
+and KITTI-layout sequences, KITTI ground truth), jobs (`lidar-slam simulate`: one sequence per
+pose file, several on the Ray fleet of `batch`).
+
+Conventions (also written into every sequence's README):
+- Input poses are T_world_lidar (K, 4, 4) at stamps_s (K,). The world is built along the stretch
+  that is simulated. The ground is ONE height field fitted to the trajectory's heights minus the
+  sensor mount height; the simulated poses keep the input x, y and heading, and take z (ground +
+  mount height) and roll/pitch (ground normal) from that field. Those simulated poses are the
+  ones written out.
+- A scan's stamp is the START of its sweep. Column c of a sweep is captured at stamp + c * period /
+  n_azimuth from the pose interpolated at that instant (slerp/lerp between the simulated poses,
+  extrapolated past the last one), so scans carry true motion distortion. The head starts facing
+  backwards (azimuth 180 deg) and turns clockwise seen from above, like a Velodyne.
+- Points are in the sensor frame of their own capture instant (raw, not deskewed); per-point times
+  are seconds relative to the stamp, in [0, period).
+- Output is a KITTI-layout folder: velodyne/NNNNNN.bin (float32 x, y, z, intensity),
+  velodyne_times/NNNNNN.bin (float32 s), times.txt, calib.txt (Tr: T_cam_lidar, identity unless
+  given), poses.txt with P_i = Tr @ T_seq_lidar_i @ inv(Tr), where the sequence frame is the
+  lidar frame of the first written scan (so P_0 = I, as in KITTI).
+"""
+
+
+from lidar_slam.sim.sensor import SENSORS, PoseInterpolator, SensorModel, get_sensor
+from lidar_slam.sim.sequence import (
+    KittiTruth,
+    SimScan,
+    SimSummary,
+    load_kitti_truth,
+    sequence_world,
+    simulate_scan,
+    simulate_sequence,
+    write_calib,
+)
+from lidar_slam.sim.world import (
+    ALBEDO,
+    CLASSES,
+    Centerline,
+    Terrain,
+    World,
+    WorldParams,
+    build_world,
+    fit_terrain,
+    make_centerline,
+    place_on_terrain,
+)
+
+__all__ = ["ALBEDO", "CLASSES", "SENSORS", "Centerline", "KittiTruth", "PoseInterpolator",
+           "SensorModel", "SimScan", "SimSummary", "Terrain", "World", "WorldParams",
+           "build_world", "fit_terrain", "get_sensor", "load_kitti_truth", "make_centerline",
+           "place_on_terrain", "sequence_world", "simulate_scan", "simulate_sequence",
+           "write_calib"]

@@ -1,0 +1,123 @@
+"""`lidar-slam simulate` as jobs: one sequence per KITTI pose file, several on the Ray fleet of
+`batch` (lidar_slam.batch.fan_out), else one after another. Nothing here imports typer: a Ray
+worker imports this module."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from lidar_slam.errors import LidarSlamError, RunFailed
+
+log = logging.getLogger("lidar_slam")
+
+SIMULATE_OUTPUTS = ("velodyne", "velodyne_times", "poses.txt", "times.txt", "calib.txt",
+                    "README.txt")
+
+
+@dataclass(frozen=True)
+class SimulateJob:
+    """One sequence of `simulate`: the pose file, the files beside it and the options."""
+
+    poses: str
+    out: str
+    calib: str | None = None
+    times: str | None = None
+    sensor: str = "hdl64"
+    start: int = 0
+    n_scans: int | None = None
+    seed: int = 0
+    overwrite: bool = False
+
+
+def simulate_one(job: SimulateJob, progress: bool = True) -> str:
+    """Simulate one sequence into job.out (the --out rule applies); returns the line to print.
+    A missing --calib is looked up as ../calib/<name>.txt beside POSES, as --times."""
+    import numpy as np
+
+    from lidar_slam.io.trajectory import (
+        camera_to_lidar_poses,
+        read_kitti_calib_tr,
+        read_kitti_poses,
+        read_times,
+    )
+    from lidar_slam.run.outdir import prepare_out_dir, scan_range
+    from lidar_slam.run.progress import progress as make_progress
+    from lidar_slam.sim.sequence import simulate_sequence
+
+    poses, out = Path(job.poses), Path(job.out)
+    calib = Path(job.calib) if job.calib else poses.parent.parent / "calib" / poses.name
+    if job.calib is None and not calib.is_file():
+        raise RunFailed(f"{poses}: no --calib given and no {calib} beside it; pass --calib")
+    prepare_out_dir(out, SIMULATE_OUTPUTS, job.overwrite)
+    Tr = read_kitti_calib_tr(calib)
+    poses_lidar = camera_to_lidar_poses(read_kitti_poses(poses), Tr)
+    times = Path(job.times) if job.times else poses.parent.parent / "times" / poses.name
+    if times.is_file():
+        stamps = read_times(times)
+    else:
+        log.warning("%s not found: poses taken as 0.1 s apart (10 Hz); pass --times", times)
+        stamps = np.arange(len(poses_lidar)) * 0.1
+    if len(stamps) != len(poses_lidar):
+        raise RunFailed(f"{times}: {len(stamps)} stamps for {len(poses_lidar)} poses")
+    total = scan_range(poses, job.start, job.n_scans, len(poses_lidar), "pose",
+                       count=str(len(poses_lidar)))
+    bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
+    try:
+        summary = simulate_sequence(poses_lidar, stamps, out, sensor=job.sensor, seed=job.seed,
+                                    start=job.start, n_scans=job.n_scans, Tr_cam_lidar=Tr,
+                                    on_scan=bar.tick)
+    finally:
+        bar.close()
+    return (f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
+            f"{summary.seconds_per_scan:.3f} s/scan) into {out}")
+
+
+def simulate_job(job: SimulateJob) -> tuple[bool, str]:
+    """simulate_one as a job of many (a Ray task): (True, its line) or (False, its error)."""
+    try:
+        return True, simulate_one(job, progress=False)
+    except LidarSlamError as exc:
+        return False, str(exc)
+    except (OSError, ValueError) as exc:
+        return False, f"{job.poses}: {exc}"
+
+
+def simulate_many(jobs: list[SimulateJob], names: list[str], address: str | None,
+                  workers: int | None, on_done: Callable[[str], None]) -> None:
+    """Several sequences: in parallel on Ray when it is installed, else one after another;
+    on_done(line) for each that succeeded; a failing one is reported on stderr and the others
+    go on (RunFailed, exit code 1, when any failed)."""
+    from lidar_slam.batch.fleet import INSTALL, Fleet, ray_installed
+    from lidar_slam.batch.progress import JobProgress
+    from lidar_slam.batch.runner import fan_out
+    from lidar_slam.run.progress import progress_interval_s
+
+    progress = JobProgress("simulate", names, progress_interval_s())
+    failed = 0
+
+    def report(index: int, ok: bool, text: str) -> None:
+        nonlocal failed
+        failed += not ok
+        progress.finished(index, ok, "ok" if ok else f"error: {text}")
+        if ok:
+            on_done(text)
+
+    if ray_installed():
+        def finished(outcome) -> None:
+            ok, text = outcome.value if outcome.error is None else (False, outcome.error)
+            report(outcome.index, ok, text)
+
+        if fan_out(Fleet(address, workers), simulate_job, jobs, progress, finished):
+            raise KeyboardInterrupt  # Ray stopped: Ctrl-C as for one sequence
+    else:
+        if address is not None:
+            raise RunFailed(f"--address needs Ray, which is not installed: {INSTALL}")
+        log.warning("Ray is not installed: simulating the %d sequences one after another "
+                    "(for all at once: %s)", len(jobs), INSTALL)
+        for i, job in enumerate(jobs):
+            report(i, *simulate_job(job))
+    if failed:
+        raise RunFailed(f"{failed} of {len(jobs)} sequences failed", 1)

@@ -1,0 +1,213 @@
+"""Sweeps cast in a world, written as a KITTI-layout sequence; KITTI ground truth read back."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam.geometry import inverse
+from lidar_slam.io.atomic import atomic_path, write_text_atomic
+from lidar_slam.io.trajectory import (
+    camera_to_lidar_poses,
+    read_kitti_calib_tr,
+    read_kitti_poses,
+    read_times,
+    write_kitti_poses,
+)
+from lidar_slam.sim.sensor import PoseInterpolator, SensorModel, get_sensor
+from lidar_slam.sim.world import (
+    ALBEDO,
+    CLASSES,
+    World,
+    WorldParams,
+    build_world,
+    place_on_terrain,
+)
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scans
+
+
+@dataclass(frozen=True)
+class SimScan:
+    """One simulated sweep: raw points (N, 3) in the sensor frame at each point's capture time,
+    intensity (N,) in [0, 1], times_s (N,) seconds after the stamp (the sweep start)."""
+
+    points: np.ndarray
+    intensity: np.ndarray
+    times_s: np.ndarray
+
+
+def simulate_scan(world: World, sensor: SensorModel, poses_at, stamp_s: float, rng) -> SimScan:
+    """Cast one sweep starting at stamp_s; poses_at(times) -> T_world_lidar (N, 4, 4)."""
+    tau = sensor.column_times_s()
+    T = poses_at(stamp_s + tau)  # (A, 4, 4) the sensor pose at each column's capture time
+    d_loc = sensor.directions()  # (A, B, 3) nominal: what the points are computed with
+    d_true = sensor.directions(sensor.elevation_error_deg) if sensor.elevation_error_deg else d_loc
+    d_world = np.einsum("aij,abj->abi", T[:, :3, :3], d_true).reshape(-1, 3)
+    n_b = d_loc.shape[1]
+    o_world = np.repeat(T[:, :3, 3], n_b, axis=0)
+    hit = world.cast(o_world, d_world)
+    r = hit["t_hit"].astype(np.float64)
+    cos_inc = np.abs(np.sum(hit["normal"] * d_world, axis=1))
+    u = rng.random(len(r))
+    noise = np.clip(rng.normal(0.0, sensor.range_noise_m, len(r)), -3 * sensor.range_noise_m,
+                    3 * sensor.range_noise_m)
+    # Dropouts: a base rate, and most returns at grazing incidence are lost.
+    p_drop = sensor.dropout + 0.6 * np.clip(1.0 - cos_inc / 0.12, 0.0, 1.0)
+    ok = np.isfinite(r) & (r >= sensor.min_range_m) & (r <= sensor.max_range_m) & (u >= p_drop)
+    rn = r[ok] + noise[ok]
+    points = d_loc.reshape(-1, 3)[ok] * rn[:, None]
+    albedo = np.array([ALBEDO[c] for c in CLASSES])[hit["class"][ok]]
+    texture = 0.8 + 0.4 * ((hit["prim"][ok].astype(np.int64) * 2654435761) % 1000) / 1000.0
+    intensity = np.clip(albedo * texture * (0.35 + 0.65 * cos_inc[ok]) * np.exp(-rn / 400.0),
+                        0.0, 1.0)
+    times = np.repeat(tau, n_b)[ok]
+    return SimScan(points, intensity, times)
+
+
+# ----------------------------------------------------------------------------------------------
+# Sequences
+
+
+@dataclass(frozen=True)
+class SimSummary:
+    """What simulate_sequence wrote: poses are the simulated T_world_lidar at the scan stamps."""
+
+    out_dir: Path
+    sensor: SensorModel
+    seed: int
+    n_scans: int
+    stamps_s: np.ndarray
+    poses_world_lidar: np.ndarray  # (n, 4, 4) simulated, in the input world frame
+    T_world_seq: np.ndarray  # the sequence frame (poses.txt) = lidar frame of the first scan
+    Tr_cam_lidar: np.ndarray
+    points_per_scan: float
+    seconds_per_scan: float
+    world_seconds: float
+    n_triangles: int
+    n_objects: dict = dataclasses.field(default_factory=dict)
+
+
+def write_calib(path: Path, Tr_cam_lidar: np.ndarray) -> None:
+    """calib.txt with P0..P3 placeholders (KITTI cam0 intrinsics) and the Tr line."""
+    p = "7.188560e+02 0.0 6.071928e+02 0.0 0.0 7.188560e+02 1.852157e+02 0.0 0.0 0.0 1.0 0.0"
+    tr = " ".join(f"{v:.12e}" for v in Tr_cam_lidar[:3, :4].ravel())
+    write_text_atomic(path, "".join(f"P{i}: {p}\n" for i in range(4)) + f"Tr: {tr}\n")
+
+
+def _write_readme(out: Path, summary: SimSummary) -> None:
+    s = summary.sensor
+    write_text_atomic(
+        out / "README.txt",
+        f"Simulated by lidar_slam.sim (sensor {s.name}: {len(s.elevations_deg)} beams, "
+        f"{s.n_azimuth} azimuth steps, {s.rate_hz:g} Hz, max range {s.max_range_m:g} m, "
+        f"range noise {s.range_noise_m * 100:g} cm), seed {summary.seed}, "
+        f"{summary.n_scans} scans.\n"
+        "velodyne/NNNNNN.bin: float32 x y z intensity, raw (motion-distorted) sensor frame.\n"
+        "velodyne_times/NNNNNN.bin: float32 seconds of each point after the scan stamp; the stamp\n"
+        "  (times.txt) is the START of the sweep and the scan's pose refers to that instant.\n"
+        "poses.txt: KITTI camera-frame poses P_i = Tr @ T_seq_lidar_i @ inv(Tr) (Tr from\n"
+        "  calib.txt); read back with inv(Tr) @ P_i @ Tr. The sequence frame is the lidar frame of\n"
+        "  scan 0 (P_0 = I). These are the poses actually simulated (z and roll/pitch from the\n"
+        "  fitted terrain), not the input trajectory.\n")
+
+
+def sequence_world(poses_world_lidar: np.ndarray, start: int, stop: int,
+                   sensor: str | SensorModel = "hdl64", seed: int = 0,
+                   params: WorldParams | None = None) -> World:
+    """The world simulate_sequence builds for scans start..stop-1 of poses (K, 4, 4): it spans
+    that stretch plus params.extend_m of the input path on either side."""
+    params = params or WorldParams()
+    xy = np.asarray(poses_world_lidar)[:, :2, 3]
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
+    i0 = int(np.searchsorted(arc, arc[start] - params.extend_m, side="left"))
+    i1 = int(np.searchsorted(arc, arc[stop - 1] + params.extend_m, side="right"))
+    return build_world(poses_world_lidar[i0:i1], sensor, seed, params)
+
+
+def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_dir: str | Path,
+                      sensor: str | SensorModel = "hdl64", seed: int = 0, start: int = 0,
+                      n_scans: int | None = None, Tr_cam_lidar: np.ndarray | None = None,
+                      params: WorldParams | None = None,
+                      on_scan: Callable[[int], None] | None = None) -> SimSummary:
+    """Simulate scans start..start+n_scans of a trajectory into a KITTI-layout folder out_dir.
+
+    poses_world_lidar (K, 4, 4) with stamps_s (K,) in seconds. The world is built along that
+    stretch only; the same seed gives the same bytes. Every file is written whole or not at all
+    (temporary file + rename); on_scan(k) is called after scan k is written (progress).
+    """
+    sensor = get_sensor(sensor)
+    poses_world_lidar = np.asarray(poses_world_lidar, dtype=float)
+    stamps_s = np.asarray(stamps_s, dtype=float)
+    stop = len(poses_world_lidar) if n_scans is None else min(len(poses_world_lidar),
+                                                              start + n_scans)
+    if stop <= start:
+        raise ValueError(f"nothing to simulate: start {start}, stop {stop}")
+    Tr = np.eye(4) if Tr_cam_lidar is None else np.asarray(Tr_cam_lidar, dtype=float)
+    params = params or WorldParams()
+    t0 = time.perf_counter()
+    world = sequence_world(poses_world_lidar, start, stop, sensor, seed, params)
+    world_s = time.perf_counter() - t0
+    poses = place_on_terrain(poses_world_lidar[start:stop], world.terrain, sensor.mount_height_m)
+    stamps = stamps_s[start:stop]
+    interp = PoseInterpolator(stamps, poses)
+    out = Path(out_dir)
+    (out / "velodyne").mkdir(parents=True, exist_ok=True)
+    (out / "velodyne_times").mkdir(exist_ok=True)
+    n_points = 0
+    t1 = time.perf_counter()
+    for k in range(stop - start):
+        rng = np.random.default_rng([seed, 1, start + k])
+        scan = simulate_scan(world, sensor, interp, float(stamps[k]), rng)
+        # Times first: a scan file never exists without its times (a killed simulate leaves
+        # scans that a run reads correctly, never a half-written one).
+        with atomic_path(out / "velodyne_times" / f"{k:06d}.bin", fsync=False) as tmp:
+            scan.times_s.astype(np.float32).tofile(tmp)
+        with atomic_path(out / "velodyne" / f"{k:06d}.bin", fsync=False) as tmp:
+            np.c_[scan.points, scan.intensity].astype(np.float32).tofile(tmp)
+        n_points += len(scan.points)
+        if on_scan is not None:
+            on_scan(k)
+        if k % 100 == 0:
+            log.info("scan %d/%d: %d points", k, stop - start, len(scan.points))
+    per_scan = (time.perf_counter() - t1) / (stop - start)
+    T_world_seq = poses[0].copy()
+    write_kitti_poses(out / "poses.txt", Tr @ (inverse(T_world_seq) @ poses) @ inverse(Tr))
+    with atomic_path(out / "times.txt") as tmp:
+        np.savetxt(tmp, stamps, fmt="%.6f")
+    write_calib(out / "calib.txt", Tr)
+    summary = SimSummary(out, sensor, seed, stop - start, stamps, poses, T_world_seq, Tr,
+                         n_points / (stop - start), per_scan, world_s, world.n_triangles,
+                         world.n_objects)
+    _write_readme(out, summary)
+    return summary
+
+
+@dataclass(frozen=True)
+class KittiTruth:
+    """A KITTI ground-truth trajectory in the lidar frame: T_world_lidar (K, 4, 4), stamps (s)."""
+
+    sequence: str
+    poses_world_lidar: np.ndarray
+    stamps_s: np.ndarray
+    Tr_cam_lidar: np.ndarray
+
+
+def load_kitti_truth(kitti_gt_dir: str | Path, sequence: str | int) -> KittiTruth:
+    """Read poses/XX.txt, calib/XX.txt, times/XX.txt; T_world_lidar = inv(Tr) @ P_i @ Tr."""
+    root = Path(kitti_gt_dir)
+    seq = f"{int(sequence):02d}"
+    Tr = read_kitti_calib_tr(root / "calib" / f"{seq}.txt")
+    poses = camera_to_lidar_poses(read_kitti_poses(root / "poses" / f"{seq}.txt"), Tr)
+    stamps = read_times(root / "times" / f"{seq}.txt")
+    return KittiTruth(seq, poses, stamps, Tr)
