@@ -38,7 +38,7 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.errors import InputError
-from lidar_slam.keyframes import write_atomic
+from lidar_slam.io.atomic import write_atomic
 from lidar_slam.pipeline import Pipeline
 from lidar_slam.types import LoopConstraint
 

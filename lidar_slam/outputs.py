@@ -12,9 +12,9 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig, dump_config
 from lidar_slam.geometry import inverse
-from lidar_slam.io.atomic import atomic_path
+from lidar_slam.io.atomic import atomic_path, write_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
-from lidar_slam.keyframes import DESCRIPTORS, KeyframeStore, write_atomic
+from lidar_slam.keyframes import DESCRIPTORS, KeyframeStore
 from lidar_slam.mapping import write_map
 from lidar_slam.pipeline import RunResult
 
