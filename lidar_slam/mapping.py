@@ -5,7 +5,6 @@ Built by streaming, so memory does not grow with the drive (see write_map).
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -13,45 +12,11 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.geometry import transform_points
-from lidar_slam.io.atomic import atomic_path
+from lidar_slam.io.ply import copy_into_ply, xyz_fields, xyz_rows
 from lidar_slam.keyframes import KeyframeStore
 
 TILE_VOXELS = 500  # tile side in voxels (100 m at 0.2 m)
 CHUNK_POINTS = 250_000  # points gathered before reducing and spilling them to the tiles
-
-
-def _ply_header(n: int, intensity: bool) -> bytes:
-    fields = ["x", "y", "z"] + (["intensity"] if intensity else [])
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-    header += [f"property float {name}" for name in fields] + ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii")
-
-
-def write_ply(path: str | Path, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY with float32 x, y, z and an `intensity` property when given
-    (written atomically)."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(_ply_header(len(points), intensity is not None))
-        fh.write(_rows(points, intensity).tobytes())
-
-
-def _rows(points: np.ndarray, intensity: np.ndarray | None) -> np.ndarray:
-    cols = [points.astype(np.float32)]
-    if intensity is not None:
-        cols.append(np.asarray(intensity, np.float32)[:, None])
-    return np.ascontiguousarray(np.hstack(cols))
-
-
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N,3) float64 and intensity (N,) or None of a PLY written by write_ply/write_map."""
-    with open(path, "rb") as fh:
-        header = []
-        while not header or header[-1] != "end_header":
-            header.append(fh.readline().decode("ascii").strip())
-        n = int(next(h.split()[2] for h in header if h.startswith("element vertex")))
-        ncol = sum(h.startswith("property float") for h in header)
-        rows = np.fromfile(fh, dtype="<f4", count=n * ncol).reshape(n, ncol)
-    return rows[:, :3].astype(np.float64), rows[:, 3].copy() if ncol == 4 else None
 
 
 _XY_BITS, _Z_BITS = 21, 20  # voxel coordinates: +-2^20 voxels across (+-210 km at 0.2 m),
@@ -160,13 +125,9 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
                 keys, sums, counts = _reduce(np.ascontiguousarray(rec[:, 0]).view(np.uint64),
                                              rec[:, 1:5], rec[:, 5])
                 mean = sums / counts[:, None]
-                out.write(_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
+                out.write(xyz_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
                 n += len(keys)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as out, open(body, "rb") as src:
-            out.write(_ply_header(n, has_intensity))
-            shutil.copyfileobj(src, out, 1 << 24)
-        os.replace(tmp, path)
+        copy_into_ply(path, n, xyz_fields(has_intensity), body)
         return n
     finally:
         shutil.rmtree(spill, ignore_errors=True)
