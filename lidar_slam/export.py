@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import LidarSlamError
+from lidar_slam.frontend.downsample import voxel_first_indices
 from lidar_slam.io.atomic import atomic_path
 from lidar_slam.io.ply import write_ply
 from lidar_slam.saved_map import SavedMap
@@ -60,9 +61,7 @@ def map_points(saved_map: SavedMap, voxel_m: float | None = None) -> MapPoints:
     out = MapPoints(np.concatenate(pts), np.concatenate(inten), np.concatenate(kf))
     if voxel_m is None:
         return out
-    cells = np.floor(out.points / voxel_m).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
-    keep = np.sort(first)
+    keep = voxel_first_indices(out.points, voxel_m)
     return MapPoints(out.points[keep], out.intensity[keep], out.keyframe[keep])
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_slam.frontend.downsample import sum_by_key, voxel_cells
 from lidar_slam.geometry import transform_points
 from lidar_slam.io.ply import copy_into_ply, xyz_fields, xyz_rows
 from lidar_slam.keyframes import KeyframeStore
@@ -28,7 +29,7 @@ def _sort_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, int]:
     (x, y, z) inside it, and the shift that leaves the tile: ((tile x, tile y), local x,
     local y, z) packed high to low, so one sort groups the points of each tile and of each voxel
     in the order the map is written."""
-    cells = np.floor(points / voxel_m).astype(np.int64)
+    cells = voxel_cells(points, voxel_m)
     cells[:, :2] += 1 << (_XY_BITS - 1)
     cells[:, 2] += 1 << (_Z_BITS - 1)
     if cells.size and (cells[:, :2].min() < 0 or cells[:, :2].max() >= 1 << _XY_BITS
@@ -47,21 +48,6 @@ def _sort_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, int]:
     key = (key << np.uint64(local_bits)) | ly
     key = (key << np.uint64(_Z_BITS)) | c[:, 2]
     return key, 2 * local_bits + _Z_BITS
-
-
-def _reduce(keys: np.ndarray, rows: np.ndarray, counts: np.ndarray | None = None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sum the rows (K, C) that share a key, and their counts (each row counts `counts`, else
-    1): (unique keys ascending, summed rows, summed counts)."""
-    order = np.argsort(keys)
-    keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    sums = np.add.reduceat(rows[order], starts, axis=0)
-    if counts is None:
-        counts = np.diff(np.r_[starts, len(keys)]).astype(np.float64)
-    else:
-        counts = np.add.reduceat(counts[order], starts)
-    return keys[starts], sums, counts
 
 
 def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.ndarray],
@@ -93,7 +79,7 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
                 return
             rows, n_buf = chunk[:n_buf], 0
             keys, tile_shift = _sort_keys(rows[:, :3], voxel_m)
-            keys, sums, counts = _reduce(keys, rows)
+            keys, sums, counts = sum_by_key(keys, rows)
             tile = keys >> np.uint64(tile_shift)  # ascending, like the keys
             cut = np.flatnonzero(tile[1:] != tile[:-1]) + 1
             records = np.hstack([keys.view(np.float64)[:, None], sums, counts[:, None]])
@@ -122,7 +108,7 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
         with open(body, "wb") as out:
             for t in sorted(tiles):
                 rec = np.fromfile(spill / f"{t}.bin").reshape(-1, 6)
-                keys, sums, counts = _reduce(np.ascontiguousarray(rec[:, 0]).view(np.uint64),
+                keys, sums, counts = sum_by_key(np.ascontiguousarray(rec[:, 0]).view(np.uint64),
                                              rec[:, 1:5], rec[:, 5])
                 mean = sums / counts[:, None]
                 out.write(xyz_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
