@@ -25,9 +25,9 @@ from lidar_slam.geometry import (
 )
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.trajectory import read_kitti_poses
-from lidar_slam.loop.ground import level_ground
 from lidar_slam.loop.scan_context import align, describe, shift_to_yaw
 from lidar_slam.loop.verify import information_matrix, match_side, query_side, verify
+from lidar_slam.registration import level_ground
 from lidar_slam.types import LoopCandidate
 
 TRUE_PAIRS = [(175, 108), (172, 109), (168, 113), (176, 114)]  # 2.2-4.1 m apart
