@@ -254,7 +254,7 @@ def _record_json(rec) -> dict:
 def restore(run_dir: Path, pipe: Pipeline) -> int:
     """Load the checkpoint into a fresh pipe (made on the same run folder); returns the number
     of frames it already holds (the next scan to process is start + that)."""
-    from lidar_slam.loop.closer import LoopRecord
+    from lidar_slam.loop.detector import LoopRecord
 
     d = _dir(run_dir)
     state = d / _read_manifest(d)["state"]

@@ -56,7 +56,7 @@ def ground_truth_metrics(est: np.ndarray, gt_world: np.ndarray) -> dict:
 
 def write_loops(out_dir: Path, result: RunResult) -> dict:
     """loops.csv and graph.g2o; returns the loop counts for the summary."""
-    from lidar_slam.loop.closer import loops_csv_rows
+    from lidar_slam.loop.detector import loops_csv_rows
 
     with atomic_path(out_dir / "loops.csv") as tmp, open(tmp, "w", newline="") as fh:
         csv.writer(fh).writerows(loops_csv_rows(result.loops, result.loop_backend))

@@ -272,7 +272,7 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     from lidar_slam.config import SlamConfig
     from lidar_slam.io.sources import open_source
     from lidar_slam.keyframes import KeyframeReader
-    from lidar_slam.loop.closer import LoopDetector
+    from lidar_slam.loop.detector import LoopDetector
     from lidar_slam.loop.verify import query_side
 
     raw = yaml.safe_load((run / "config.yaml").read_text())

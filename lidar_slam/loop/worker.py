@@ -104,7 +104,7 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _start_process(cfg_json: dict, store_root: str, parent_pid: int) -> None:
     global _DETECTOR
-    from lidar_slam.loop.closer import LoopDetector
+    from lidar_slam.loop.detector import LoopDetector
 
     for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
@@ -179,7 +179,7 @@ class LoopWorker:
                 signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
             self._pid = next(iter(self._pool._processes), None)
         else:
-            from lidar_slam.loop.closer import LoopDetector
+            from lidar_slam.loop.detector import LoopDetector
 
             self.detector = LoopDetector(cfg, store)
             if mode == "thread":
