@@ -308,8 +308,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         else:  # a checkpoint from before the windowed back-end: re-solve the newest window
             pipe.backend.update()
         upto = min(upto, len(r.store) - 1)
-        applied = [c for c in loops if c.query <= upto]
-        pipe.loops.reindex(upto, max(applied, key=lambda c: c.query) if applied else None)
+        pipe.loops.reindex(upto)
         for kf_id in range(max(upto + 1, 0), len(r.store)):
             pipe.loops.submit(kf_id)
     return meta["frames"]

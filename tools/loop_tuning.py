@@ -278,7 +278,6 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     raw = yaml.safe_load((run / "config.yaml").read_text())
     raw["loop"]["scan_context"]["threshold"] = threshold
     raw["loop"]["verify"]["min_margin"] = 0.0
-    raw["loop"]["follow_keyframes"] = 0
     auto = json.loads((run / "summary.json").read_text()).get("auto_settings", {})
     cfg = adapt.apply(SlamConfig(**raw), auto)  # the "auto" values the run fixed
     gt = open_source(data).ground_truth

@@ -253,34 +253,3 @@ def verify(candidate: LoopCandidate, query: np.ndarray | Side, match: np.ndarray
               np.degrees(candidate.yaw_guess_rad), np.degrees(yaw_icp), reason or "accepted")
     return VerificationResult(not fails, reason, fitness, rmse, candidate.yaw_guess_rad, yaw_icp,
                               margin, constraint, T, tuple(hyps))
-
-
-def verify_followed(query_points: np.ndarray, match_points: np.ndarray, T_predicted: np.ndarray,
-                    cfg: VerifyConfig) -> VerificationResult:
-    """Verify a loop predicted by following an accepted one (LoopDetector): one fine ICP from
-    T_predicted (the previous loop's T_match_query chained with a few keyframes of odometry,
-    good to centimetres), the usual fitness / RMSE / translation gates, and ICP may move the
-    prediction at most cfg.follow_max_correction_m / _deg. No yaw hypotheses or margin: the
-    start is not a descriptor's guess but a verified pose, and a solution one bay along or a
-    quarter turn away is far outside the allowed correction."""
-    gicp = cfg.method == "gicp"
-    src = make_cloud(query_points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
-    tgt = make_cloud(match_points, cfg.voxel_m, True, gicp)
-    if min(len(src.points), len(tgt.points)) < 10:
-        return VerificationResult(False, "too few points", 0.0, np.inf, np.nan, np.nan, 0.0, None)
-    T = _icp(src, tgt, T_predicted, cfg.max_correspondence_m, cfg)
-    ev = _evaluate(src, tgt, T, cfg.inlier_m)
-    fails = _failed_gates(ev.fitness, ev.rmse_m, None, 0.0, T, cfg)
-    d = inverse(T_predicted) @ T
-    moved_m, turned_deg = float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
-    if moved_m > cfg.follow_max_correction_m or turned_deg > cfg.follow_max_correction_deg:
-        fails.append(f"followed loop: ICP moved the prediction {moved_m:.2f} m / "
-                     f"{turned_deg:.1f} deg")
-    constraint = None
-    if not fails:
-        info = information_matrix(src.points, tgt.points, tgt.normals, ev.correspondences, T,
-                                  ev.rmse_m, cfg)
-        constraint = LoopConstraint(-1, -1, T, info, ev.fitness, ev.rmse_m)
-    return VerificationResult(not fails, "; ".join(fails), ev.fitness, ev.rmse_m, np.nan,
-                              yaw_rad(T), 0.0, constraint, T)
-

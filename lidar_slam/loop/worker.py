@@ -139,8 +139,8 @@ def _timed_process(kf_id: int):
     return _DETECTOR.process(kf_id), time.perf_counter() - t0
 
 
-def _reindex(upto: int, last_loop) -> None:
-    _DETECTOR.reindex(upto, last_loop)
+def _reindex(upto: int) -> None:
+    _DETECTOR.reindex(upto)
 
 
 # -- the pipeline's side -------------------------------------------------------------------------
@@ -225,13 +225,12 @@ class LoopWorker:
             self.urgent_s += now - self._urgent_since
         self._urgent = urgent
 
-    def reindex(self, upto: int, last_loop=None) -> None:
-        """Index keyframes 0..upto from the store (resuming a run), before any submit();
-        last_loop: the newest LoopConstraint accepted for a keyframe <= upto (to follow)."""
+    def reindex(self, upto: int) -> None:
+        """Index keyframes 0..upto from the store (resuming a run), before any submit()."""
         if self.mode == "process":
-            self._pool.submit(_reindex, upto, last_loop).result()
+            self._pool.submit(_reindex, upto).result()
         else:
-            self.detector.reindex(upto, last_loop)
+            self.detector.reindex(upto)
 
     def collect(self, upto: int) -> list:
         """Results (LoopResult) of every submitted keyframe with id <= upto, in keyframe order,
