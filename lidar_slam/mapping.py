@@ -1,6 +1,7 @@
 """Global map: keyframe clouds placed with the final poses, voxel-downsampled, written as PLY.
 
-Built by streaming, so memory does not grow with the drive (see write_map).
+Built by streaming, so memory does not grow with the drive (see write_map). read_ply (from
+lidar_slam.io.ply) reads map.ply back; the README documents it as lidar_slam.mapping.read_ply.
 """
 
 from __future__ import annotations
@@ -13,8 +14,10 @@ import numpy as np
 
 from lidar_slam.frontend.downsample import sum_by_key, voxel_cells
 from lidar_slam.geometry import transform_points
-from lidar_slam.io.ply import copy_into_ply, xyz_fields, xyz_rows
+from lidar_slam.io.ply import copy_into_ply, read_ply, xyz_fields, xyz_rows
 from lidar_slam.keyframes import KeyframeStore
+
+__all__ = ["read_ply", "write_map"]
 
 TILE_VOXELS = 500  # tile side in voxels (100 m at 0.2 m)
 CHUNK_POINTS = 250_000  # points gathered before reducing and spilling them to the tiles
