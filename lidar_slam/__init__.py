@@ -1,40 +1,6 @@
-"""lidar_slam: lidar SLAM from a folder of scans or a rosbag to a drift-corrected trajectory and map."""
+"""lidar_slam: lidar SLAM from a folder of scans or a rosbag to a drift-corrected trajectory and map.
 
-import os as _os
-
-# One OpenBLAS thread. kiss-icp's registration runs on every core (TBB); OpenBLAS threads woken by
-# a large NumPy product (the deskew's (N,3) x (3,3)) then spin-wait and take those cores away:
-# registration took 29.5 instead of 15.1 ms per HDL-64 scan on 2 cores. Our products are all
-# (N,3) x (3,3), for which one thread is as fast. Only effective when NumPy is not yet imported
-# (the CLI); a user's own setting wins.
-_os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-
-
-def _keep_freed_memory() -> None:
-    """Let glibc's malloc reuse freed memory instead of returning it to the OS at every free.
-
-    Every scan allocates and frees arrays of a few MB (points, crops, selections, in NumPy and in
-    kiss-icp). Above glibc's default mmap threshold each one is a fresh mmap, whose pages fault
-    in one by one when touched and are unmapped again on free: in this VM that cost 25 of 61 ms
-    per HDL-64E scan (tools/speed_probe.py). Raising the mmap threshold to its maximum (32 MB)
-    and the trim threshold keeps those pages in the heap for the next scan; the heap stays near
-    the run's working set. No-op where libc is not glibc.
-    """
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return
-    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-    mallopt(M_MMAP_THRESHOLD, 32 << 20)
-    mallopt(M_TRIM_THRESHOLD, 128 << 20)
-
-
-if _os.environ.get("LIDAR_SLAM_MALLOC_DEFAULTS") is None:
-    _keep_freed_memory()
+Importing it has no side effects; a run's process tuning is lidar_slam.runtime.tune_process().
+"""
 
 __version__ = "0.1.0"

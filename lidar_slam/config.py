@@ -150,10 +150,6 @@ class VerifyConfig(_Section):
     # so that no direction is more certain than these (residuals of neighbouring points correlate).
     info_min_trans_sigma_m: Positive = 0.02
     info_min_rot_sigma_deg: Positive = 0.2
-    # A followed loop (LoopConfig.follow_keyframes) is accepted only if ICP moves its predicted
-    # pose by at most this much (the prediction is good to centimetres).
-    follow_max_correction_m: Positive = 0.3
-    follow_max_correction_deg: Positive = 1.0
 
 
 class BackendConfig(_Section):
@@ -167,7 +163,7 @@ class BackendConfig(_Section):
     # the final full solve corrects every keyframe.
     window_keyframes: Count = 100
     # The live estimate takes in new loops at every update_every_keyframes-th keyframe (a
-    # revisit followed keyframe by keyframe adds a loop at each; one window solve takes them all).
+    # revisit closed keyframe by keyframe adds a loop at each; one window solve takes them all).
     update_every_keyframes: Count = 5
     # Loop kernel of the final full solve: huber (huber_k), or gnc (graduated non-convexity,
     # truncated least squares; odometry edges are known inliers, wrong loops get weight 0).
@@ -199,12 +195,6 @@ class LoopConfig(_Section):
     # poses come from the complete graph either way).
     worker: Literal["process", "thread", "inline"] = "process"
     collect_lag_keyframes: NonNegativeInt = 200
-    # After an accepted loop, the next keyframes (up to this many past it; 0 = off) are first
-    # tried against the old keyframe nearest to where that loop and the odometry put them:
-    # one ICP from the predicted pose (verify.follow_max_correction_*), no descriptor. A revisit
-    # is then closed along its length. Off by default: it doubled the loops on simulated s08
-    # (29 vs 15, all within 4 cm of the truth) but made its ATE 13 % worse (docs/design.md).
-    follow_keyframes: NonNegativeInt = 0
     scan_context: ScanContextConfig = ScanContextConfig()
     verify: VerifyConfig = VerifyConfig()
 

@@ -275,9 +275,10 @@ def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
     return out
 
 
-def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict:
+def trajectory_metrics(est: np.ndarray, gt: np.ndarray, warn: bool = True) -> dict:
     """KITTI drift (t_err %, r_err deg/100 m; None under 100 m of path), ATE (m) and RPE (m, deg)
-    of est against gt, both (K, 4, 4) and paired frame by frame."""
+    of est against gt, both (K, 4, 4) and paired frame by frame; warn: log the frame mix-up
+    warning (it is in the result either way)."""
     drift = metrics.kitti_drift(est, gt)
     a = metrics.ate(est, gt)
     r = metrics.rpe(est, gt)
@@ -309,7 +310,24 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray) -> dict:
         # lidar, a missing or extra calib), not a bad estimate.
         out["warning"] = (f"per-frame RPE {r.trans_m_mean:.3f} m vs mean step {mean_step_m:.3f} m:"
                           " estimate and ground truth are probably in different sensor frames")
-        log.warning(out["warning"])
+        if warn:
+            log.warning(out["warning"])
+    return out
+
+
+def run_summary_metrics(est: np.ndarray, gt_world: np.ndarray) -> dict:
+    """A run's summary.json figures against ground truth: trajectory_metrics' RPE means and ATE
+    RMSE, and the end drift (% of the path), of est (K, 4, 4, frame 0 = identity) against
+    gt_world (K, 4, 4) re-expressed in its first frame."""
+    gt = inverse(gt_world[0]) @ gt_world
+    if len(est) < 2:
+        return {"ate_rmse_m": metrics.ate(est, gt).rmse_m}
+    m = trajectory_metrics(est, gt, warn=False)
+    out = {"rpe_trans_m_mean": m["rpe_trans_m_mean"], "rpe_rot_deg_mean": m["rpe_rot_deg_mean"]}
+    drift = metrics.end_drift_pct(est, gt)
+    if drift is not None:
+        out["end_drift_pct"] = drift
+    out["ate_rmse_m"] = m["ate_rmse_m"]
     return out
 
 

@@ -1,5 +1,5 @@
-"""A saved map's points as a file other tools open: PLY / PCD (open3d's writers) or LAS / LAZ
-(laspy, the only module that imports it), with intensity and the id of the keyframe each point
+"""A saved map's points as a file other tools open: PLY (lidar_slam.io.ply), PCD (open3d's
+writer) or LAS / LAZ (laspy, the only module that imports it), with intensity and the id of the keyframe each point
 comes from. Points are the keyframe clouds as the run stored them, placed with the final poses in
 the map frame (the frame of the run's poses_kitti.txt); --voxel keeps the first of each voxel."""
 
@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import LidarSlamError
+from lidar_slam.frontend.downsample import voxel_first_indices
 from lidar_slam.io.atomic import atomic_path
+from lidar_slam.io.ply import write_ply
 from lidar_slam.saved_map import SavedMap
 
 log = logging.getLogger(__name__)
@@ -59,9 +61,7 @@ def map_points(saved_map: SavedMap, voxel_m: float | None = None) -> MapPoints:
     out = MapPoints(np.concatenate(pts), np.concatenate(inten), np.concatenate(kf))
     if voxel_m is None:
         return out
-    cells = np.floor(out.points / voxel_m).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
-    keep = np.sort(first)
+    keep = voxel_first_indices(out.points, voxel_m)
     return MapPoints(out.points[keep], out.intensity[keep], out.keyframe[keep])
 
 
@@ -80,25 +80,28 @@ def write_points(path: Path, fmt: PointFormat, mp: MapPoints) -> int:
     """Write mp to path (atomically) in fmt; returns the number of points written."""
     if fmt in (PointFormat.las, PointFormat.laz):
         _write_las(path, mp, compressed=fmt == PointFormat.laz)
+    elif fmt == PointFormat.ply:
+        p = mp.points.astype(np.float32)
+        # keyframe as int32: the type open3d's PLY writer gave it (it has no uint32 property).
+        write_ply(path, {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "intensity": mp.intensity,
+                         "keyframe": mp.keyframe.astype(np.int32)})
     else:
-        _write_o3d(path, fmt, mp)
+        _write_pcd(path, mp)
     return len(mp.points)
 
 
-def _write_o3d(path: Path, fmt: PointFormat, mp: MapPoints) -> None:
+def _write_pcd(path: Path, mp: MapPoints) -> None:
     from lidar_slam.o3d import o3d
 
     cloud = o3d.t.geometry.PointCloud()
     cloud.point.positions = o3d.core.Tensor(mp.points.astype(np.float32))
     cloud.point.intensity = o3d.core.Tensor(mp.intensity.reshape(-1, 1))
-    # PLY has no unsigned 32-bit property in open3d's writer.
-    kf_type = np.int32 if fmt == PointFormat.ply else np.uint32
-    cloud.point.keyframe = o3d.core.Tensor(mp.keyframe.astype(kf_type).reshape(-1, 1))
+    cloud.point.keyframe = o3d.core.Tensor(mp.keyframe.astype(np.uint32).reshape(-1, 1))
     with atomic_path(path) as tmp:
         # open3d picks the writer by the file name's suffix.
-        named = tmp.with_name(tmp.name + f".{fmt.value}")
+        named = tmp.with_name(tmp.name + ".pcd")
         if not o3d.t.io.write_point_cloud(str(named), cloud):
-            raise LidarSlamError(f"{path}: open3d could not write the {fmt.value.upper()} file")
+            raise LidarSlamError(f"{path}: open3d could not write the PCD file")
         named.replace(tmp)
 
 

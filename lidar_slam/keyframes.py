@@ -40,6 +40,7 @@ import numpy as np
 from lidar_slam.config import KeyframeConfig
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import relative, rotation_angle_deg
+from lidar_slam.io.atomic import write_atomic
 from lidar_slam.types import Keyframe
 
 STORE_VERSION = 3
@@ -274,13 +275,3 @@ def check_version(path: Path, manifest: dict) -> None:
         raise InputError(path, f"keyframe store version {manifest.get('version')}, this "
                          f"lidar-slam reads versions {', '.join(map(str, READABLE_VERSIONS))}")
 
-
-def write_atomic(path: str | Path, text: str | bytes) -> None:
-    """Write a file via a temporary file and a rename: readers see the old or the new file."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(text.encode() if isinstance(text, str) else text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)

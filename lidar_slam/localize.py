@@ -29,11 +29,10 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
 from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg
-from lidar_slam.loop.ground import level_ground
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import verify
 from lidar_slam.odometry import VoxelSelector
-from lidar_slam.registration import PlaneTarget, voxel_centroids
+from lidar_slam.registration import PlaneTarget, level_ground, voxel_centroids
 from lidar_slam.saved_map import SavedMap
 from lidar_slam.types import LoopCandidate, Scan
 

@@ -1,57 +1,26 @@
 """Global map: keyframe clouds placed with the final poses, voxel-downsampled, written as PLY.
 
-Built by streaming, so memory does not grow with the drive (see write_map).
+Built by streaming, so memory does not grow with the drive (see write_map). read_ply (from
+lidar_slam.io.ply) reads map.ply back; the README documents it as lidar_slam.mapping.read_ply.
 """
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from lidar_slam.frontend.downsample import sum_by_key, voxel_cells
 from lidar_slam.geometry import transform_points
-from lidar_slam.io.atomic import atomic_path
+from lidar_slam.io.ply import copy_into_ply, read_ply, xyz_fields, xyz_rows
 from lidar_slam.keyframes import KeyframeStore
+
+__all__ = ["read_ply", "write_map"]
 
 TILE_VOXELS = 500  # tile side in voxels (100 m at 0.2 m)
 CHUNK_POINTS = 250_000  # points gathered before reducing and spilling them to the tiles
-
-
-def _ply_header(n: int, intensity: bool) -> bytes:
-    fields = ["x", "y", "z"] + (["intensity"] if intensity else [])
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-    header += [f"property float {name}" for name in fields] + ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii")
-
-
-def write_ply(path: str | Path, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY with float32 x, y, z and an `intensity` property when given
-    (written atomically)."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(_ply_header(len(points), intensity is not None))
-        fh.write(_rows(points, intensity).tobytes())
-
-
-def _rows(points: np.ndarray, intensity: np.ndarray | None) -> np.ndarray:
-    cols = [points.astype(np.float32)]
-    if intensity is not None:
-        cols.append(np.asarray(intensity, np.float32)[:, None])
-    return np.ascontiguousarray(np.hstack(cols))
-
-
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N,3) float64 and intensity (N,) or None of a PLY written by write_ply/write_map."""
-    with open(path, "rb") as fh:
-        header = []
-        while not header or header[-1] != "end_header":
-            header.append(fh.readline().decode("ascii").strip())
-        n = int(next(h.split()[2] for h in header if h.startswith("element vertex")))
-        ncol = sum(h.startswith("property float") for h in header)
-        rows = np.fromfile(fh, dtype="<f4", count=n * ncol).reshape(n, ncol)
-    return rows[:, :3].astype(np.float64), rows[:, 3].copy() if ncol == 4 else None
 
 
 _XY_BITS, _Z_BITS = 21, 20  # voxel coordinates: +-2^20 voxels across (+-210 km at 0.2 m),
@@ -63,7 +32,7 @@ def _sort_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, int]:
     (x, y, z) inside it, and the shift that leaves the tile: ((tile x, tile y), local x,
     local y, z) packed high to low, so one sort groups the points of each tile and of each voxel
     in the order the map is written."""
-    cells = np.floor(points / voxel_m).astype(np.int64)
+    cells = voxel_cells(points, voxel_m)
     cells[:, :2] += 1 << (_XY_BITS - 1)
     cells[:, 2] += 1 << (_Z_BITS - 1)
     if cells.size and (cells[:, :2].min() < 0 or cells[:, :2].max() >= 1 << _XY_BITS
@@ -82,21 +51,6 @@ def _sort_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, int]:
     key = (key << np.uint64(local_bits)) | ly
     key = (key << np.uint64(_Z_BITS)) | c[:, 2]
     return key, 2 * local_bits + _Z_BITS
-
-
-def _reduce(keys: np.ndarray, rows: np.ndarray, counts: np.ndarray | None = None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sum the rows (K, C) that share a key, and their counts (each row counts `counts`, else
-    1): (unique keys ascending, summed rows, summed counts)."""
-    order = np.argsort(keys)
-    keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    sums = np.add.reduceat(rows[order], starts, axis=0)
-    if counts is None:
-        counts = np.diff(np.r_[starts, len(keys)]).astype(np.float64)
-    else:
-        counts = np.add.reduceat(counts[order], starts)
-    return keys[starts], sums, counts
 
 
 def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.ndarray],
@@ -128,7 +82,7 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
                 return
             rows, n_buf = chunk[:n_buf], 0
             keys, tile_shift = _sort_keys(rows[:, :3], voxel_m)
-            keys, sums, counts = _reduce(keys, rows)
+            keys, sums, counts = sum_by_key(keys, rows)
             tile = keys >> np.uint64(tile_shift)  # ascending, like the keys
             cut = np.flatnonzero(tile[1:] != tile[:-1]) + 1
             records = np.hstack([keys.view(np.float64)[:, None], sums, counts[:, None]])
@@ -157,16 +111,12 @@ def write_map(path: str | Path, store: KeyframeStore, T_world_kf: dict[int, np.n
         with open(body, "wb") as out:
             for t in sorted(tiles):
                 rec = np.fromfile(spill / f"{t}.bin").reshape(-1, 6)
-                keys, sums, counts = _reduce(np.ascontiguousarray(rec[:, 0]).view(np.uint64),
+                keys, sums, counts = sum_by_key(np.ascontiguousarray(rec[:, 0]).view(np.uint64),
                                              rec[:, 1:5], rec[:, 5])
                 mean = sums / counts[:, None]
-                out.write(_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
+                out.write(xyz_rows(mean[:, :3], mean[:, 3] if has_intensity else None).tobytes())
                 n += len(keys)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as out, open(body, "rb") as src:
-            out.write(_ply_header(n, has_intensity))
-            shutil.copyfileobj(src, out, 1 << 24)
-        os.replace(tmp, path)
+        copy_into_ply(path, n, xyz_fields(has_intensity), body)
         return n
     finally:
         shutil.rmtree(spill, ignore_errors=True)

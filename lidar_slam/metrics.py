@@ -35,6 +35,22 @@ def path_distances_m(poses: np.ndarray) -> np.ndarray:
     return np.r_[0.0, np.cumsum(steps)]
 
 
+def path_length_m(poses: np.ndarray) -> float:
+    """Length (m) of the polyline through the poses' positions."""
+    if len(poses) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
+def end_drift_pct(poses_est: np.ndarray, poses_gt: np.ndarray) -> float | None:
+    """Distance between the last estimated and true positions, in % of the ground truth's path
+    length (None when the ground truth does not move)."""
+    gt_len = path_length_m(poses_gt)
+    if not gt_len > 0:
+        return None
+    return float(100.0 * np.linalg.norm(poses_est[-1, :3, 3] - poses_gt[-1, :3, 3]) / gt_len)
+
+
 # ----------------------------------------------------------------------------------- KITTI drift
 
 

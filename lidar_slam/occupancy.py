@@ -1,7 +1,7 @@
 """A 2-D occupancy grid of a saved map, written in the ROS map_server format (map.png +
 map.yaml).
 
-Each keyframe's cloud is levelled on the ground fitted below its sensor (lidar_slam.loop.ground).
+Each keyframe's cloud is levelled on the ground fitted below its sensor (lidar_slam.registration).
 Points in the height band above that ground are obstacles: their cell gets a hit. Free space
 comes from the rays: from the sensor towards each point, the stretch of the ray that lies inside
 the band (all of it for a ground point: an obstacle standing there would have stopped the ray;
@@ -24,7 +24,7 @@ import numpy as np
 
 from lidar_slam.errors import LidarSlamError
 from lidar_slam.io.atomic import atomic_path, write_text_atomic
-from lidar_slam.loop.ground import level_ground
+from lidar_slam.registration import level_ground
 from lidar_slam.saved_map import SavedMap
 
 log = logging.getLogger(__name__)

@@ -79,7 +79,7 @@ class RerunViz:
         """Log the final (optimised) trajectory and the written map, then flush the recording."""
         if result.odom_poses:
             from lidar_slam.geometry import inverse
-            from lidar_slam.mapping import read_ply
+            from lidar_slam.io.ply import read_ply
 
             poses = result.final_poses()
             anchor = inverse(poses[0])  # the written files' world: frame 0 at its stamp

@@ -591,7 +591,7 @@ def test_backend_finish_gnc_rejects_the_wrong_loop():
 
 
 def test_backend_loops_csv_has_the_backend_column():
-    from lidar_slam.loop.closer import LoopRecord, loops_csv_rows
+    from lidar_slam.loop.detector import LoopRecord, loops_csv_rows
 
     def rec(q, m, accepted):
         return LoopRecord(q * 10, m * 10, q, m, 0.1, 0.0, 0.9, 0.1, accepted, "",

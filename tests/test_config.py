@@ -101,6 +101,20 @@ def test_a_bad_config_file_is_one_line_naming_it(tmp_path, text, needles):
         assert needle in line, line
 
 
+def test_a_config_that_still_sets_loop_following_is_one_line_naming_the_key(tmp_path):
+    """Loop following (off by default, measured worse) is gone: an old overlay that still sets
+    it gets the usual unknown-key line, not a silently ignored setting."""
+    for text, key in (("loop: {follow_keyframes: 3}\n", "loop.follow_keyframes"),
+                      ("loop: {verify: {follow_max_correction_m: 0.3}}\n",
+                       "loop.verify.follow_max_correction_m")):
+        path = tmp_path / "c.yaml"
+        path.write_text(text)
+        with pytest.raises(ConfigError) as err:
+            load_config(path)
+        line = str(err.value)
+        assert "\n" not in line and line.startswith(f"{path}: {key}: Extra inputs"), line
+
+
 def test_a_config_that_is_not_utf8_is_one_line(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_bytes(b"odometry:\n  voxel_size_m: \xff\n")

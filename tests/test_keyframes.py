@@ -6,8 +6,9 @@ import pytest
 from lidar_slam.errors import InputError
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import make_pose
+from lidar_slam.io.ply import read_ply
 from lidar_slam.keyframes import KeyframeStore
-from lidar_slam.mapping import read_ply, write_map
+from lidar_slam.mapping import write_map
 
 
 def _fill(store, n=30, seed=0):

@@ -294,3 +294,13 @@ def test_metrics_revisit_frames_kitti(kitti_gt):
     assert int(rv07.sum()) == 56
     assert int(metrics.revisit_frames(read_kitti_poses(kitti_gt / "poses" / "07.txt"),
                                       min_frame_gap=99).sum()) == 63
+
+
+def test_end_drift_is_the_last_position_error_in_percent_of_the_true_path():
+    gt = np.stack([np.eye(4)] * 3)
+    gt[1, 0, 3], gt[2, 0, 3] = 10.0, 20.0  # 20 m along x
+    est = gt.copy()
+    est[2, 1, 3] = 0.5
+    assert metrics.path_length_m(gt) == pytest.approx(20.0)
+    assert metrics.end_drift_pct(est, gt) == pytest.approx(2.5)
+    assert metrics.end_drift_pct(est, np.stack([np.eye(4)] * 3)) is None  # truth stands still

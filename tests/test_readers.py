@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.ply import write_xyz_ply
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
 from lidar_slam.io.trajectory import read_times
-from lidar_slam.mapping import write_ply
 from lidar_slam.o3d import o3d
 
 
@@ -20,7 +20,7 @@ def _cloud(n=100, seed=0):
 def test_bin_ply_pcd_npy_give_the_same_points(tmp_path):
     pts, inten = _cloud()
     np.c_[pts, inten].astype(np.float32).tofile(tmp_path / "a.bin")
-    write_ply(tmp_path / "b.ply", pts, inten)
+    write_xyz_ply(tmp_path / "b.ply", pts, inten)
     pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts.astype(np.float32)))
     pcd.point.intensity = o3d.core.Tensor(inten.reshape(-1, 1))
     o3d.t.io.write_point_cloud(str(tmp_path / "c.pcd"), pcd)

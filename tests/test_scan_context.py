@@ -13,8 +13,8 @@ from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import inverse, transform_points, yaw_matrix, yaw_rad
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.trajectory import read_kitti_poses
-from lidar_slam.loop.ground import level_ground
 from lidar_slam.loop.scan_context import ScanContextIndex, column_distances, describe
+from lidar_slam.registration import level_ground
 
 INDOOR = dict(max_radius_m=30.0)  # the value recommended for this indoor data
 
@@ -156,7 +156,7 @@ def test_a_candidate_is_verified_only_where_the_odometry_could_have_drifted_to(t
     from lidar_slam.config import SlamConfig
     from lidar_slam.geometry import make_pose
     from lidar_slam.keyframes import KeyframeStore
-    from lidar_slam.loop.closer import LoopDetector
+    from lidar_slam.loop.detector import LoopDetector
 
     store = KeyframeStore(tmp_path / "kf")
     corners = [(0, 0), (50, 0), (50, 50), (0, 50), (0, 4)]

@@ -50,7 +50,7 @@ LABELS = {"lidar-slam": "lidar-slam", "kiss-icp-pipeline": "kiss_icp_pipeline (s
 PEER_PACKAGES = {"kiss-icp": "kiss_icp", "kiss-icp-pipeline": "kiss_icp", "kiss-slam": "kiss_slam"}
 # frames/s ratios are against the first of these that ran: bare odometry, then kiss-icp's deskew.
 SPEED_BASELINES = ("kiss-icp-pipeline", "kiss-icp")
-# loops.csv as the pipeline writes it (lidar_slam.loop.closer.loops_csv_rows): T_match_query.
+# loops.csv as the pipeline writes it (lidar_slam.loop.detector.loops_csv_rows): T_match_query.
 LOOPS_POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 MIN_DRIFT_PATH_M = metrics.KITTI_LENGTHS_M[0]
 HEADER = ("sequence", "system", "t_err %", "r_err deg/100 m", "ATE m", "loops accepted / correct",

@@ -272,13 +272,12 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     from lidar_slam.config import SlamConfig
     from lidar_slam.io.sources import open_source
     from lidar_slam.keyframes import KeyframeReader
-    from lidar_slam.loop.closer import LoopDetector
+    from lidar_slam.loop.detector import LoopDetector
     from lidar_slam.loop.verify import match_side, query_side
 
     raw = yaml.safe_load((run / "config.yaml").read_text())
     raw["loop"]["scan_context"]["threshold"] = threshold
     raw["loop"]["verify"]["min_margin"] = 0.0
-    raw["loop"]["follow_keyframes"] = 0
     auto = json.loads((run / "summary.json").read_text()).get("auto_settings", {})
     cfg = adapt.apply(SlamConfig(**raw), auto)  # the "auto" values the run fixed
     gt = open_source(data).ground_truth

@@ -24,7 +24,7 @@ from pathlib import Path
 from lidar_slam.config import load_config
 from lidar_slam.keyframes import TABLE_DTYPE, KeyframeReader
 from lidar_slam.loop import adapt
-from lidar_slam.loop.closer import LoopDetector
+from lidar_slam.loop.detector import LoopDetector
 
 
 def main() -> None:

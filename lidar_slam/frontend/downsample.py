@@ -1,9 +1,15 @@
-"""Voxel downsampling that keeps an intensity channel (keyframe and map clouds).
+"""Voxel downsampling in NumPy: the package's one voxel grid (keyframe, map and export clouds).
 
-Plain NumPy so that odometry-only runs never pay for importing open3d. Two reductions:
-"mean" (the centroid of each voxel's points, for the final map) and "first" (one input point
-per voxel, as kiss-icp keeps; a scatter into a dense cell grid, several times faster, for the
-per-keyframe clouds on the odometry's hot path).
+A point's voxel is floor(point / voxel_m) on each axis (voxel_cells); every NumPy downsampling
+of the package keys its points by it. Two reductions: "mean" (the centroid of each voxel's
+points, with their mean intensity: the run's map, whose streamed form in lidar_slam.mapping adds
+up the same per-voxel sums tile by tile, sum_by_key) and "first" (the first input point of each
+voxel, in input order: `lidar-slam export --voxel`).
+
+Not here, on purpose: the odometry's selection and kiss-icp's own downsampling
+(kiss_icp's C++ `_voxel_down_sample`, lidar_slam.odometry) and small_gicp's voxel centroids
+(lidar_slam.registration): the poses and loop constraints are those libraries' results bit for
+bit. Plain NumPy so that odometry-only runs never pay for importing open3d.
 """
 
 from __future__ import annotations
@@ -12,68 +18,60 @@ from typing import Literal
 
 import numpy as np
 
-_MAX_DENSE_CELLS = 1 << 25  # 128 MB of int32 at most for the scatter grid
+
+def voxel_cells(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The voxel (N, 3) int64 of each point of points (N, 3), metres: floor(points / voxel_m)."""
+    return np.floor(points / voxel_m).astype(np.int64)
 
 
-def _cell_keys(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, int]:
-    """One int64 key per point for its voxel, and the number of cells in the bounding grid."""
-    inv = 1.0 / voxel_m
-    keys = np.zeros(len(points), dtype=np.int64)
-    n_cells = 1
-    for axis in range(3):  # column by column: reductions over axis 0 of (N, 3) are slow
-        c = points[:, axis] * inv
-        c -= np.floor(c.min())
-        cells = c.astype(np.int64)  # non-negative, so truncation is floor
-        dim = int(cells.max()) + 1
-        keys *= dim
-        keys += cells
-        n_cells *= dim
-    return keys, n_cells
+def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One int64 per point, equal for points in the same voxel and different otherwise."""
+    cells = voxel_cells(points, voxel_m)
+    if len(cells) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells -= cells.min(axis=0)
+    dims = cells.max(axis=0) + 1
+    if float(np.prod(dims.astype(np.float64))) >= 2.0**62:  # too many cells for one int64
+        return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+    return (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
 
 
-_GRID = np.empty(0, dtype=np.int32)
-
-
-def _scatter_grid(n_cells: int) -> np.ndarray:
-    """A reused int32 buffer of at least n_cells: a fresh one costs a page fault per touched page."""
-    global _GRID
-    if len(_GRID) < n_cells:
-        _GRID = np.empty(n_cells, dtype=np.int32)
-    return _GRID
+def sum_by_key(keys: np.ndarray, rows: np.ndarray, counts: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sum the rows (K, C) that share a key, and their counts (each row counts `counts`, else
+    1): (unique keys ascending, summed rows, summed counts)."""
+    order = np.argsort(keys)
+    keys = keys[order]
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    sums = np.add.reduceat(rows[order], starts, axis=0)
+    if counts is None:
+        counts = np.diff(np.r_[starts, len(keys)]).astype(np.float64)
+    else:
+        counts = np.add.reduceat(counts[order], starts)
+    return keys[starts], sums, counts
 
 
 def voxel_first_indices(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices of one input point per occupied voxel of voxel_m metres (sorted, ascending)."""
+    """Indices of the first input point of each occupied voxel of voxel_m metres (ascending)."""
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
-    keys, n_cells = _cell_keys(points, voxel_m)
-    if n_cells <= _MAX_DENSE_CELLS:
-        grid = _scatter_grid(n_cells)  # only the cells written below are read
-        idx = np.arange(len(keys), dtype=np.int32)
-        grid[keys] = idx
-        return np.flatnonzero(grid[keys] == idx)
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
-    return np.sort(order[np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]])
+    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
+    return np.sort(first)
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float, intensity: np.ndarray | None = None,
                      reduce: Literal["mean", "first"] = "mean"
                      ) -> tuple[np.ndarray, np.ndarray | None]:
-    """One point per voxel of voxel_m metres (see the module doc for `reduce`)."""
+    """One point per voxel of voxel_m metres (see the module doc for `reduce`), with its
+    intensity (float32 for "mean") when given."""
     if len(points) == 0 or voxel_m <= 0:
         return points, intensity
     if reduce == "first":
         keep = voxel_first_indices(points, voxel_m)
         return points[keep], None if intensity is None else intensity[keep]
-    keys, _ = _cell_keys(points, voxel_m)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
-    counts = np.diff(np.r_[starts, len(keys)])[:, None]
-    out = np.add.reduceat(points[order], starts, axis=0) / counts
-    out_i = None
-    if intensity is not None:
-        out_i = (np.add.reduceat(np.asarray(intensity, np.float64)[order], starts)
-                 / counts[:, 0]).astype(np.float32)
-    return out, out_i
+    rows = points if intensity is None else np.c_[points, np.asarray(intensity, np.float64)]
+    _, sums, counts = sum_by_key(voxel_keys(points, voxel_m), rows)
+    mean = sums / counts[:, None]
+    if intensity is None:
+        return mean, None
+    return mean[:, :3], mean[:, 3].astype(np.float32)

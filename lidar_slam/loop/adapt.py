@@ -20,8 +20,8 @@ import logging
 import numpy as np
 
 from lidar_slam.config import SlamConfig
-from lidar_slam.loop.ground import level_ground
 from lidar_slam.loop.scan_context import DEFAULT_SENSOR_HEIGHT_M
+from lidar_slam.registration import level_ground
 
 log = logging.getLogger(__name__)
 OUTDOOR_FALLBACK_RANGE_M = 60.0  # a first scan with no point in range: assume outdoors

@@ -19,7 +19,7 @@ import numpy as np
 
 from lidar_slam.config import ScanContextConfig
 from lidar_slam.geometry import make_pose
-from lidar_slam.loop.ground import level_ground
+from lidar_slam.registration import level_ground
 from lidar_slam.types import LoopCandidate
 
 log = logging.getLogger(__name__)

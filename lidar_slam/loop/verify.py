@@ -8,8 +8,8 @@ plausible. So every start yaw_guess + k * 90 deg is aligned on coarse clouds (la
 correspondence distances pull in the metres between revisits), the hypotheses are ranked by
 coarse fitness, the winner's basin is probed by restarts pushed a few metres sideways (halls and
 corridors repeat every bay), the winner must beat the best *different* solution by a margin, and
-only the winner is refined on the fine clouds. small_gicp does the downsampling, normals,
-KD-trees and ICP, single-threaded: its multi-threaded sums are not reproducible bit for bit.
+only the winner is refined on the fine clouds. small_gicp (behind lidar_slam.registration)
+does the downsampling, normals, KD-trees and ICP, single-threaded.
 """
 
 from __future__ import annotations
@@ -18,11 +18,10 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import small_gicp
 
 from lidar_slam.config import VerifyConfig
 from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg, yaw_matrix, yaw_rad
-from lidar_slam.loop.ground import level_ground
+from lidar_slam.registration import Cloud, align, level_ground, make_cloud
 from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
@@ -64,24 +63,6 @@ class VerificationResult:
     hypotheses: tuple[Hypothesis, ...] = ()
 
 
-# One thread everywhere: small_gicp's OpenMP reductions sum in a varying order.
-_THREADS = 1
-_NEIGHBOURS = 10  # for normals / covariances
-
-
-@dataclass(frozen=True)
-class _Cloud:
-    """A small_gicp cloud with its KD-tree; points (N, 3) in its sensor frame, metres."""
-
-    points: np.ndarray
-    cloud: small_gicp.PointCloud
-    tree: small_gicp.KdTree
-
-    @property
-    def normals(self) -> np.ndarray:
-        return self.cloud.normals()[:, :3]
-
-
 @dataclass(frozen=True)
 class _Fit:
     """Share of query points with a match point within the inlier distance, their RMSE (m),
@@ -92,54 +73,27 @@ class _Fit:
     correspondences: np.ndarray
 
 
-def _cloud(points: np.ndarray, voxel_m: float, normals: bool, covariances: bool,
-           max_points: int = 0) -> _Cloud:
-    """Voxel-downsampled cloud (voxel centroids), at most max_points of them (a fixed random
-    subset; 0: no cap; ICP time grows with the source size), with normals when it is a
-    point-to-plane target and covariances for GICP."""
-    pts = small_gicp.voxelgrid_sampling(np.asarray(points, np.float64), voxel_m,
-                                        num_threads=_THREADS).points()[:, :3]
-    n = len(pts)
-    if 0 < max_points < n:
-        pts = pts[np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))]
-    pts = np.ascontiguousarray(pts)
-    cloud = small_gicp.PointCloud(pts)
-    tree = small_gicp.KdTree(cloud, num_threads=_THREADS)
-    if normals and covariances:
-        small_gicp.estimate_normals_covariances(cloud, tree, _NEIGHBOURS, _THREADS)
-    elif normals:
-        small_gicp.estimate_normals(cloud, tree, _NEIGHBOURS, _THREADS)
-    elif covariances:
-        small_gicp.estimate_covariances(cloud, tree, _NEIGHBOURS, _THREADS)
-    return _Cloud(pts, cloud, tree)
-
-
-def _icp(src: _Cloud, tgt: _Cloud, T0: np.ndarray, max_corr_m: float,
+def _icp(src: Cloud, tgt: Cloud, T0: np.ndarray, max_corr_m: float,
          cfg: VerifyConfig) -> np.ndarray:
     """One ICP run query -> match from T0; returns T_match_query. small_gicp's PLANE_ICP
     weighs each axis of the residual by the normal's component, so unlike open3d's
     point-to-plane it resists sliding along oblique walls and needs more iterations to pull in
     metres (tools/loop_tuning.py sweep --every-scan: 77 loops accepted vs open3d's 88, none wrong)."""
-    result = small_gicp.align(
-        tgt.cloud, src.cloud, tgt.tree, init_T_target_source=T0,
-        registration_type="GICP" if cfg.method == "gicp" else "PLANE_ICP",
-        max_correspondence_distance=max_corr_m, num_threads=_THREADS,
-        max_iterations=cfg.max_iterations)
-    return np.asarray(result.T_target_source)
+    return align(tgt.cloud, tgt.tree, src.cloud, T0, max_corr_m, cfg.max_iterations,
+                 "GICP" if cfg.method == "gicp" else "PLANE_ICP")
 
 
-def _evaluate(src: _Cloud, tgt: _Cloud, T_match_query: np.ndarray, inlier_m: float) -> _Fit:
+def _evaluate(src: Cloud, tgt: Cloud, T_match_query: np.ndarray, inlier_m: float) -> _Fit:
     """Fitness and inlier RMSE of T_match_query: each query point's nearest match point."""
     moved = src.points @ T_match_query[:3, :3].T + T_match_query[:3, 3]
-    idx, sq = tgt.tree.batch_nearest_neighbor_search(moved, num_threads=_THREADS)
-    idx, sq = np.asarray(idx, np.int64), np.asarray(sq, np.float64)
+    idx, sq = tgt.nearest(moved)
     inlier = (idx >= 0) & (sq <= inlier_m**2)
     fitness = float(inlier.sum()) / max(len(moved), 1)
     rmse = float(np.sqrt(sq[inlier].mean())) if inlier.any() else np.inf
     return _Fit(fitness, rmse, np.c_[np.flatnonzero(inlier), idx[inlier]])
 
 
-def _coarse_align(src_c: _Cloud, tgt_c: _Cloud, T0: np.ndarray,
+def _coarse_align(src_c: Cloud, tgt_c: Cloud, T0: np.ndarray,
                   cfg: VerifyConfig) -> tuple[np.ndarray, float]:
     """Coarse ICP from T0 (full, then half the coarse correspondence distance); (T, fitness)."""
     T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
@@ -214,24 +168,24 @@ class Side:
     in (the query keyframe's against each of its candidates, a match keyframe's for several
     queries): fine and coarse clouds, and the rotation levelling its ground (4x4)."""
 
-    fine: _Cloud
-    coarse: _Cloud
+    fine: Cloud
+    coarse: Cloud
     L_level: np.ndarray
 
 
 def query_side(points: np.ndarray, cfg: VerifyConfig) -> Side:
     """The query's clouds (the ICP source: capped subsets) from its points (its frame, m)."""
     gicp = cfg.method == "gicp"
-    fine = _cloud(points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
-    coarse = _cloud(points, cfg.coarse_voxel_m, False, gicp, cfg.coarse_max_points)
+    fine = make_cloud(points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
+    coarse = make_cloud(points, cfg.coarse_voxel_m, False, gicp, cfg.coarse_max_points)
     return Side(fine, coarse, _level(fine.points, cfg))
 
 
 def match_side(points: np.ndarray, cfg: VerifyConfig) -> Side:
     """The match's clouds (the ICP target, with normals for the information matrix)."""
     gicp = cfg.method == "gicp"
-    fine = _cloud(points, cfg.voxel_m, True, gicp)
-    coarse = _cloud(fine.points, cfg.coarse_voxel_m, not gicp, gicp)
+    fine = make_cloud(points, cfg.voxel_m, True, gicp)
+    coarse = make_cloud(fine.points, cfg.coarse_voxel_m, not gicp, gicp)
     return Side(fine, coarse, _level(fine.points, cfg))
 
 
@@ -299,34 +253,3 @@ def verify(candidate: LoopCandidate, query: np.ndarray | Side, match: np.ndarray
               np.degrees(candidate.yaw_guess_rad), np.degrees(yaw_icp), reason or "accepted")
     return VerificationResult(not fails, reason, fitness, rmse, candidate.yaw_guess_rad, yaw_icp,
                               margin, constraint, T, tuple(hyps))
-
-
-def verify_followed(query_points: np.ndarray, match_points: np.ndarray, T_predicted: np.ndarray,
-                    cfg: VerifyConfig) -> VerificationResult:
-    """Verify a loop predicted by following an accepted one (LoopDetector): one fine ICP from
-    T_predicted (the previous loop's T_match_query chained with a few keyframes of odometry,
-    good to centimetres), the usual fitness / RMSE / translation gates, and ICP may move the
-    prediction at most cfg.follow_max_correction_m / _deg. No yaw hypotheses or margin: the
-    start is not a descriptor's guess but a verified pose, and a solution one bay along or a
-    quarter turn away is far outside the allowed correction."""
-    gicp = cfg.method == "gicp"
-    src = _cloud(query_points, cfg.voxel_m, False, gicp, cfg.fine_max_points)
-    tgt = _cloud(match_points, cfg.voxel_m, True, gicp)
-    if min(len(src.points), len(tgt.points)) < 10:
-        return VerificationResult(False, "too few points", 0.0, np.inf, np.nan, np.nan, 0.0, None)
-    T = _icp(src, tgt, T_predicted, cfg.max_correspondence_m, cfg)
-    ev = _evaluate(src, tgt, T, cfg.inlier_m)
-    fails = _failed_gates(ev.fitness, ev.rmse_m, None, 0.0, T, cfg)
-    d = inverse(T_predicted) @ T
-    moved_m, turned_deg = float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
-    if moved_m > cfg.follow_max_correction_m or turned_deg > cfg.follow_max_correction_deg:
-        fails.append(f"followed loop: ICP moved the prediction {moved_m:.2f} m / "
-                     f"{turned_deg:.1f} deg")
-    constraint = None
-    if not fails:
-        info = information_matrix(src.points, tgt.points, tgt.normals, ev.correspondences, T,
-                                  ev.rmse_m, cfg)
-        constraint = LoopConstraint(-1, -1, T, info, ev.fitness, ev.rmse_m)
-    return VerificationResult(not fails, "; ".join(fails), ev.fitness, ev.rmse_m, np.nan,
-                              yaw_rad(T), 0.0, constraint, T)
-

@@ -104,8 +104,10 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _start_process(cfg_json: dict, store_root: str, parent_pid: int) -> None:
     global _DETECTOR
-    from lidar_slam.loop.closer import LoopDetector
+    from lidar_slam.loop.detector import LoopDetector
+    from lidar_slam.runtime import tune_process
 
+    tune_process()  # a spawned process: the parent's malloc settings are not inherited
     for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     _die_with_parent(parent_pid)
@@ -139,8 +141,8 @@ def _timed_process(kf_id: int):
     return _DETECTOR.process(kf_id), time.perf_counter() - t0
 
 
-def _reindex(upto: int, last_loop) -> None:
-    _DETECTOR.reindex(upto, last_loop)
+def _reindex(upto: int) -> None:
+    _DETECTOR.reindex(upto)
 
 
 # -- the pipeline's side -------------------------------------------------------------------------
@@ -179,7 +181,7 @@ class LoopWorker:
                 signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
             self._pid = next(iter(self._pool._processes), None)
         else:
-            from lidar_slam.loop.closer import LoopDetector
+            from lidar_slam.loop.detector import LoopDetector
 
             self.detector = LoopDetector(cfg, store)
             if mode == "thread":
@@ -225,13 +227,12 @@ class LoopWorker:
             self.urgent_s += now - self._urgent_since
         self._urgent = urgent
 
-    def reindex(self, upto: int, last_loop=None) -> None:
-        """Index keyframes 0..upto from the store (resuming a run), before any submit();
-        last_loop: the newest LoopConstraint accepted for a keyframe <= upto (to follow)."""
+    def reindex(self, upto: int) -> None:
+        """Index keyframes 0..upto from the store (resuming a run), before any submit()."""
         if self.mode == "process":
-            self._pool.submit(_reindex, upto, last_loop).result()
+            self._pool.submit(_reindex, upto).result()
         else:
-            self.detector.reindex(upto, last_loop)
+            self.detector.reindex(upto)
 
     def collect(self, upto: int) -> list:
         """Results (LoopResult) of every submitted keyframe with id <= upto, in keyframe order,

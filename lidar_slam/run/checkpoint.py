@@ -38,7 +38,7 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.errors import InputError
-from lidar_slam.keyframes import write_atomic
+from lidar_slam.io.atomic import write_atomic
 from lidar_slam.pipeline import Pipeline
 from lidar_slam.types import LoopConstraint
 
@@ -254,7 +254,7 @@ def _record_json(rec) -> dict:
 def restore(run_dir: Path, pipe: Pipeline) -> int:
     """Load the checkpoint into a fresh pipe (made on the same run folder); returns the number
     of frames it already holds (the next scan to process is start + that)."""
-    from lidar_slam.loop.closer import LoopRecord
+    from lidar_slam.loop.detector import LoopRecord
 
     d = _dir(run_dir)
     state = d / _read_manifest(d)["state"]
@@ -308,8 +308,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         else:  # a checkpoint from before the windowed back-end: re-solve the newest window
             pipe.backend.update()
         upto = min(upto, len(r.store) - 1)
-        applied = [c for c in loops if c.query <= upto]
-        pipe.loops.reindex(upto, max(applied, key=lambda c: c.query) if applied else None)
+        pipe.loops.reindex(upto)
         for kf_id in range(max(upto + 1, 0), len(r.store)):
             pipe.loops.submit(kf_id)
     return meta["frames"]

@@ -10,11 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_slam import metrics
 from lidar_slam.config import SlamConfig, dump_config
+from lidar_slam.evaluate import run_summary_metrics
 from lidar_slam.geometry import inverse
-from lidar_slam.io.atomic import atomic_path
+from lidar_slam.io.atomic import atomic_path, write_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
-from lidar_slam.keyframes import DESCRIPTORS, KeyframeStore, write_atomic
+from lidar_slam.keyframes import DESCRIPTORS, KeyframeStore
 from lidar_slam.mapping import write_map
 from lidar_slam.pipeline import RunResult
 
@@ -29,34 +31,9 @@ def peak_rss_mb() -> float:
     return (own + children) / 1024.0
 
 
-def path_length_m(poses: np.ndarray) -> float:
-    """Length of the polyline through the poses' positions."""
-    if len(poses) < 2:
-        return 0.0
-    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
-
-
-def ground_truth_metrics(est: np.ndarray, gt_world: np.ndarray) -> dict:
-    """Per-frame RPE, ATE and end drift of est against gt (re-expressed in the first frame)."""
-    from lidar_slam import metrics
-
-    gt = inverse(gt_world[0]) @ gt_world
-    out: dict = {}
-    if len(est) >= 2:
-        rpe = metrics.rpe(est, gt)
-        out["rpe_trans_m_mean"] = rpe.trans_m_mean
-        out["rpe_rot_deg_mean"] = rpe.rot_deg_mean
-        gt_len = path_length_m(gt)
-        if gt_len > 0:
-            out["end_drift_pct"] = float(
-                100.0 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / gt_len)
-    out["ate_rmse_m"] = metrics.ate(est, gt).rmse_m
-    return out
-
-
 def write_loops(out_dir: Path, result: RunResult) -> dict:
     """loops.csv and graph.g2o; returns the loop counts for the summary."""
-    from lidar_slam.loop.closer import loops_csv_rows
+    from lidar_slam.loop.detector import loops_csv_rows
 
     with atomic_path(out_dir / "loops.csv") as tmp, open(tmp, "w", newline="") as fh:
         csv.writer(fh).writerows(loops_csv_rows(result.loops, result.loop_backend))
@@ -125,13 +102,11 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary["map_points"] = write_map(out_dir / "map.ply", result.store, T_map_kf,
                                           cfg.map.voxel_size_m)
         write_map_manifest(result.store, T_map_kf, cfg)
-        summary["path_length_m"] = path_length_m(poses)
+        summary["path_length_m"] = metrics.path_length_m(poses)
         if ground_truth is not None:
             gt = ground_truth[np.asarray(result.indices)]
-            summary.update(ground_truth_metrics(poses, gt))
+            summary.update(run_summary_metrics(poses, gt))
             if cfg.loop.enabled:  # the same ATE before loop closure, for comparison
-                from lidar_slam import metrics
-
                 summary["odometry_ate_rmse_m"] = metrics.ate(odom, inverse(gt[0]) @ gt).rmse_m
     if cfg.loop.enabled:
         summary.update(write_loops(out_dir, result))

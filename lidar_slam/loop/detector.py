@@ -11,10 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_slam.config import SlamConfig
-from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
-from lidar_slam.loop.scan_context import ScanContextIndex
-from lidar_slam.loop.verify import Side, match_side, query_side, verify, verify_followed
+from lidar_slam.geometry import relative, to_xyz_quat, transform_points
 from lidar_slam.keyframes import KeyframeStore
+from lidar_slam.loop.scan_context import ScanContextIndex
+from lidar_slam.loop.verify import Side, match_side, query_side, verify
 from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
@@ -68,7 +68,6 @@ class LoopDetector:
         # Descriptor grids go to the keyframe store's folder: RAM keeps a few hundred bytes each.
         self.index = ScanContextIndex(cfg.loop.scan_context, store.root / "descriptors.bin")
         self._path_m = [0.0]  # odometry path travelled up to each keyframe (metres)
-        self.last_loop: LoopConstraint | None = None  # the newest accepted loop (to follow)
         self._sides: dict[tuple[int, int], Side] = {}  # match submaps' clouds, oldest first
 
     def path_m(self, kf_id: int) -> float:
@@ -83,10 +82,9 @@ class LoopDetector:
     def _index(self, kf_id: int, points: np.ndarray) -> None:
         self.index.add(kf_id, points, self.path_m(kf_id), self.store.stamp_s(kf_id))
 
-    def reindex(self, upto: int, last_loop: LoopConstraint | None = None) -> None:
+    def reindex(self, upto: int) -> None:
         """Index keyframes 0..upto from the store into a fresh detector, as process() would
-        have (resuming a run); last_loop: the newest loop accepted for a keyframe <= upto."""
-        self.last_loop = last_loop
+        have (resuming a run)."""
         for kf_id in range(upto + 1):
             pts = self.store.get(kf_id).points
             if len(pts):
@@ -135,55 +133,16 @@ class LoopDetector:
             self._sides.pop(next(iter(self._sides)))
         return side
 
-    def follow(self, kf) -> tuple[LoopRecord, LoopConstraint | None] | None:
-        """Try the loop that the newest accepted loop predicts for keyframe kf (if it is at most
-        loop.follow_keyframes past that loop's query): the query's pose is that loop's
-        T_match_query chained with the odometry since, the match the eligible keyframe (within
-        a few of that loop's match) nearest to it in the match side's odometry chart."""
-        last, n = self.last_loop, self.cfg.loop.follow_keyframes
-        if last is None or n == 0 or not 0 < kf.id - last.query <= n:
-            return None
-        T_wm = self.store.T_world_kf_odom(last.match)
-        T_w_pred = T_wm @ last.T_match_query @ relative(self.store.T_world_kf_odom(last.query),
-                                                          kf.T_world_kf_odom)
-        window = range(max(0, last.match - 2 * n), min(kf.id - 1, last.match + 2 * n) + 1)
-        path_m, stamp_s = self.path_m(kf.id), self.store.stamp_s(kf.id)
-        near = [(float(np.linalg.norm(self.store.T_world_kf_odom(j)[:3, 3] - T_w_pred[:3, 3])), j)
-                for j in window if self.index.is_eligible(j, path_m, stamp_s)]
-        if not near:
-            return None
-        match = min(near)[1]
-        radius = self.cfg.loop.verify.submap_radius
-        T_pred = inverse(self.store.T_world_kf_odom(match)) @ T_w_pred
-        res = verify_followed(self.submap(kf.id, radius, kf.id),
-                              self.submap(match, radius, kf.id), T_pred, self.cfg.loop.verify)
-        constraint = None
-        if res.accepted:
-            c = res.constraint
-            constraint = LoopConstraint(kf.id, match, c.T_match_query, c.information, c.fitness,
-                                        c.rmse_m)
-        return LoopRecord(kf.frame_index, self.store.frame_index(match), kf.id, match, np.nan,
-                          np.nan, res.fitness, res.rmse_m, res.accepted,
-                          f"followed{': ' if res.reason else ''}{res.reason}",
-                          res.T_match_query), constraint
-
     def process(self, kf_id: int) -> LoopResult:
-        """Look for loops of keyframe kf_id (the newest one processed): first the loop the
-        previous one predicts (follow), else scan-context candidates, verified until one is
-        accepted; then index the keyframe."""
+        """Look for loops of keyframe kf_id (the newest one processed): scan-context
+        candidates, verified until one is accepted; then index the keyframe."""
         kf = self.store.get(kf_id)
         query_pts = kf.points.astype(np.float64)
         records: list[LoopRecord] = []
         constraint = None
         if len(query_pts) == 0:  # nothing in range: a graph node, but nothing to describe
             return LoopResult(kf_id, (), None)
-        followed = self.follow(kf)
-        if followed is not None:
-            records.append(followed[0])
-            constraint = followed[1]
-        candidates = []
-        if constraint is None:
-            candidates = self.candidates(kf.id, query_pts)
+        candidates = self.candidates(kf.id, query_pts)
         vcfg = self.cfg.loop.verify
         query = query_side(self.submap(kf.id, vcfg.submap_radius, kf.id), vcfg) if candidates \
             else None
@@ -199,8 +158,6 @@ class LoopDetector:
                          records[-1].match_frame, res.fitness)
                 break
         self._index(kf.id, query_pts)
-        if constraint is not None:
-            self.last_loop = constraint
         return LoopResult(kf_id, tuple(records), constraint)
 
 
