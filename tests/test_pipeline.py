@@ -51,8 +51,7 @@ def test_heavy_libraries_load_only_when_needed():
     import sys
 
     code = ("import sys, lidar_slam.cli, lidar_slam.pipeline, lidar_slam.loop.detector, "
-            "lidar_slam.run.outputs
-"
+            "lidar_slam.run.outputs\n"
             "print(sorted(m for m in ('open3d', 'gtsam', 'scipy.spatial') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

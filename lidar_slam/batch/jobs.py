@@ -114,7 +114,9 @@ def run_job(job: BatchJob) -> SequenceResult:
     does; its row, or an error row with the one-line message. The details say on which node
     and with which lidar_slam it ran."""
     import lidar_slam
+    from lidar_slam.runtime import tune_process
 
+    tune_process()  # a fresh worker process per job (max_calls=1): it starts a run here
     res = _run_job(job)
     res.details.update(node=socket.gethostname(), code=str(Path(lidar_slam.__file__).parent))
     return res

@@ -7,7 +7,13 @@ batch, optimize, eval, simulate, localize, export: the commands.
 
 import importlib
 
-from lidar_slam.cli.common import app, reports_errors
+from lidar_slam.runtime import tune_process
+
+# The command's process is where a run starts: tune it before anything loads NumPy (see
+# lidar_slam.runtime; importing lidar_slam itself changes nothing).
+tune_process()
+
+from lidar_slam.cli.common import app, reports_errors  # noqa: E402
 
 # Importing a command's module registers it with app; --help lists them in this order.
 COMMANDS = ("run", "batch", "optimize", "eval", "simulate", "localize", "export")
