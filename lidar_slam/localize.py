@@ -1,4 +1,4 @@
-"""Localisation in a saved map (a finished run folder, lidar_slam.saved_map).
+"""Localisation in a saved map (a finished run folder, lidar_slam.map.saved).
 
 Per scan:  deskew (motion model) -> track: point-to-plane ICP (small_gicp) against the fixed
 map's clouds around the constant-velocity prediction, kept when the scan's above-ground points
@@ -28,12 +28,12 @@ import numpy as np
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
+from lidar_slam.frontend.odometry import VoxelSelector
 from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import verify
-from lidar_slam.odometry import VoxelSelector
+from lidar_slam.map.saved import SavedMap
 from lidar_slam.registration import PlaneTarget, level_ground, voxel_centroids
-from lidar_slam.saved_map import SavedMap
 from lidar_slam.types import LoopCandidate, Scan
 
 log = logging.getLogger(__name__)

@@ -15,10 +15,11 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
+from lidar_slam.frontend.keyframes import KeyframeSelector
+from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geometry import inverse, transform_points
-from lidar_slam.keyframes import KeyframeSelector, KeyframeStore
 from lidar_slam.loop import adapt
-from lidar_slam.odometry import Odometry, OdometryResult, VoxelSelector
+from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)

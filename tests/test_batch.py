@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-
 from conftest import require_ray
+
 from lidar_slam.batch.results import COLUMNS
 
 REPO = Path(__file__).resolve().parents[1]

@@ -528,8 +528,8 @@ def test_second_signal_while_writing_is_deferred(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    from lidar_slam.run import outputs
     from lidar_slam.cli import app
+    from lidar_slam.run import outputs
 
     real = outputs.write_map
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lidar_slam.errors import InputError
-from lidar_slam.evaluate import format_table, run_eval
+from lidar_slam.eval.evaluate import format_table, run_eval
 from lidar_slam.geometry import to_xyz_quat
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,

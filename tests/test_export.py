@@ -39,7 +39,7 @@ def cells_at(grid: dict, xy: np.ndarray) -> np.ndarray:
 
 
 def test_occupancy_png_yaml_round_trip(tmp_path):
-    from lidar_slam.occupancy import OccupancyGrid, OccupancyParams, write_map_server
+    from lidar_slam.map.occupancy import OccupancyGrid, OccupancyParams, write_map_server
 
     state = np.random.default_rng(0).choice(np.array([-1, 0, 100], np.int8), size=(7, 11))
     grid = OccupancyGrid(state, 0.25, np.array([-3.5, 12.0]))
@@ -54,7 +54,7 @@ def test_occupancy_png_yaml_round_trip(tmp_path):
 
 @pytest.mark.shared_data
 def test_occupancy_grid_of_a_simulated_street(sim_map, tmp_path, kitti_gt):
-    from lidar_slam.metrics import umeyama_rigid
+    from lidar_slam.eval.metrics import umeyama_rigid
     from lidar_slam.sim import CLASSES, load_kitti_truth, sequence_world
 
     proc = lidar_slam("export", sim_map.run, "--occupancy", "--out", tmp_path / "occ")
@@ -94,8 +94,8 @@ def _written(proc) -> int:
 def test_export_las_laz_pcd_ply(sim_map, tmp_path):
     import laspy
 
+    from lidar_slam.map.saved import open_map
     from lidar_slam.o3d import o3d
-    from lidar_slam.saved_map import open_map
 
     m = open_map(sim_map.run)
     n_map, n_kf = m.n_points, len(m)
@@ -112,7 +112,7 @@ def test_export_las_laz_pcd_ply(sim_map, tmp_path):
     assert n == n_map == len(cloud.point.positions)
     assert "intensity" in cloud.point and "keyframe" in cloud.point
     # PLY with --voxel, in-process (the CLI is the same call).
-    from lidar_slam.export import PointFormat, map_points, write_points
+    from lidar_slam.map.export import PointFormat, map_points, write_points
 
     m = open_map(sim_map.run)
     n = write_points(tmp_path / "out.bin", PointFormat.ply, map_points(m, voxel_m=1.0))

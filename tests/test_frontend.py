@@ -1,12 +1,12 @@
 """Front-end stages: range crop, deskew, voxel downsample."""
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import deskew
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import interpolate, inverse, make_pose, transform_points
-from scipy.spatial.transform import Rotation
 
 
 def test_range_mask_keeps_only_points_inside_the_band():

@@ -7,8 +7,8 @@ from lidar_slam.errors import InputError
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import make_pose
 from lidar_slam.io.ply import read_ply
-from lidar_slam.keyframes import KeyframeStore
-from lidar_slam.mapping import write_map
+from lidar_slam.map.keyframes import KeyframeStore
+from lidar_slam.map.writer import write_map
 
 
 def _fill(store, n=30, seed=0):
@@ -55,7 +55,7 @@ def test_keyframes_store_reopens_and_truncates_to_a_checkpoint(tmp_path):
 
 
 def test_keyframes_streamed_map_equals_downsampling_everything(tmp_path, monkeypatch):
-    import lidar_slam.mapping as mapping
+    import lidar_slam.map.writer as mapping
 
     monkeypatch.setattr(mapping, "TILE_VOXELS", 50)  # many tiles: 10 m at 0.2 m
     monkeypatch.setattr(mapping, "CHUNK_POINTS", 3000)  # many spills
@@ -74,7 +74,7 @@ def test_keyframes_streamed_map_equals_downsampling_everything(tmp_path, monkeyp
 
 
 def test_keyframes_map_is_the_same_whatever_the_chunk_size(tmp_path, monkeypatch):
-    import lidar_slam.mapping as mapping
+    import lidar_slam.map.writer as mapping
 
     store = KeyframeStore(tmp_path / "kf")
     _fill(store)

@@ -64,7 +64,7 @@ def tracked(sim_map, tmp_path_factory):
 
 @pytest.mark.shared_data
 def test_map_layout_holds_final_keyframe_poses_in_the_map_frame(sim_map):
-    from lidar_slam.saved_map import open_map
+    from lidar_slam.map.saved import open_map
 
     manifest = json.loads((sim_map.run / "keyframes" / "manifest.json").read_text())
     assert manifest["version"] == 3 and manifest["map"]["frame"] == "poses_kitti.txt"
@@ -263,7 +263,7 @@ def test_scans_of_another_place_stay_lost_in_an_indoor_map(ouster_map, tmp_path,
 
 
 def test_prediction_misses_are_measured_on_evenly_spaced_frames_only():
-    from lidar_slam.saved_map import prediction_errors
+    from lidar_slam.map.saved import prediction_errors
 
     # 0.5 m ahead a frame, turning 10 deg a frame, then 20, and a frame dropped before the last.
     turns = [10, 10, 10, 20, 20, 20, 40]

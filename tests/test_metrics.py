@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidar_slam import metrics
+from lidar_slam.eval import metrics
 from lidar_slam.geometry import make_pose, yaw_matrix
 from lidar_slam.io.trajectory import read_kitti_poses
 

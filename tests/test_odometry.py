@@ -6,8 +6,8 @@ from kiss_icp.config import load_config as kiss_load_config
 from kiss_icp.kiss_icp import KissICP
 
 from lidar_slam.config import load_config
+from lidar_slam.frontend.odometry import Odometry
 from lidar_slam.io.sources import open_source
-from lidar_slam.odometry import Odometry
 
 
 def test_odometry_equals_stock_kiss_icp_on_kitti(kitti16):

@@ -7,10 +7,10 @@ import pytest
 
 from lidar_slam import pipeline
 from lidar_slam.config import load_config
+from lidar_slam.eval.metrics import rpe
+from lidar_slam.frontend.odometry import Odometry
 from lidar_slam.geometry import inverse
 from lidar_slam.io.sources import open_source
-from lidar_slam.metrics import rpe
-from lidar_slam.odometry import Odometry
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_scans"
 SAMPLE_CONFIG = SAMPLE.parent / "configs" / "sample.yaml"

@@ -155,8 +155,8 @@ def test_a_candidate_is_verified_only_where_the_odometry_could_have_drifted_to(t
     place (kiss-icp would have drifted 75 %)."""
     from lidar_slam.config import SlamConfig
     from lidar_slam.geometry import make_pose
-    from lidar_slam.keyframes import KeyframeStore
     from lidar_slam.loop.detector import LoopDetector
+    from lidar_slam.map.keyframes import KeyframeStore
 
     store = KeyframeStore(tmp_path / "kf")
     corners = [(0, 0), (50, 0), (50, 50), (0, 50), (0, 4)]

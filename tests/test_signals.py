@@ -145,13 +145,13 @@ def test_a_bug_is_one_line_with_the_traceback_in_a_file(monkeypatch, capsys):
     """An unexpected exception (a bug, not bad input) is one line naming it and a file with the
     traceback, exit 1; it used to be two tracebacks (typer 0.2x has no click.Abort), hiding the
     cause."""
-    import lidar_slam.evaluate
+    import lidar_slam.eval.evaluate
     from lidar_slam.cli import app
 
     def broken(*args, **kwargs):
         raise RuntimeError("boom in run_eval")
 
-    monkeypatch.setattr(lidar_slam.evaluate, "run_eval", broken)
+    monkeypatch.setattr(lidar_slam.eval.evaluate, "run_eval", broken)
     with pytest.raises(SystemExit) as exit_info:
         app(args=["eval", "est.txt", "gt.txt"])
     assert exit_info.value.code == 1

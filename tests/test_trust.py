@@ -102,7 +102,7 @@ def test_eval_calls_a_reference_a_reference(tmp_path, ouster_loop, kitti16):
 
 
 def test_plots_take_the_label(tmp_path, monkeypatch):
-    from lidar_slam import evaluate
+    from lidar_slam.eval import evaluate
 
     seen = []
     real = evaluate.plot_top_view

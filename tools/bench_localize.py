@@ -92,7 +92,7 @@ def local_truth(run: Path, gt_all: np.ndarray, frames: list[int]) -> np.ndarray:
     motion from the map keyframe nearest in time to the frame, applied to that keyframe's map
     pose (its cloud sits there by construction). Free of the map's drift over longer spans,
     which a single alignment of the whole trajectory would count as error."""
-    from lidar_slam.saved_map import open_map
+    from lidar_slam.map.saved import open_map
 
     m = open_map(run)
     kf_frames, T_map_kf = m.frame_index.copy(), m.T_map_kf.copy()
@@ -238,7 +238,7 @@ def occupancy_metrics(n_frames: int, run: Path, occ: Path, kitti_gt: Path, seque
     import yaml
     from PIL import Image
 
-    from lidar_slam.saved_map import open_map
+    from lidar_slam.map.saved import open_map
     from lidar_slam.sim import (
         CLASSES,
         SENSORS,

@@ -8,7 +8,7 @@ Every system runs as its own process on the scans lidar_slam's readers produce (
 identical points; no KITTI vertical correction unless a lidar-slam config asks for it). Cost is
 whole-process: wall time and peak RSS from os.wait4's rusage; frames/s = frames / median wall time
 over the repeats (interleaved, so every system sees the same machine load), peak MB = max over the
-repeats. Accuracy comes from lidar_slam.evaluate.run_eval and lidar_slam.metrics on the outputs of
+repeats. Accuracy comes from lidar_slam.eval.evaluate.run_eval and lidar_slam.eval.metrics on the outputs of
 the last repeat, against the sequence's ground truth (reference poses for the Ouster set).
 
 lidar-slam's rows are scored by the code of `lidar-slam batch` (lidar_slam.batch.results.run_row: the
@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam import evaluate, metrics
 from lidar_slam.batch import results
 from lidar_slam.errors import LidarSlamError
+from lidar_slam.eval import evaluate, metrics
 from lidar_slam.geometry import from_xyz_quat, interpolate, inverse
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import read_kitti_poses, write_kitti_poses

@@ -17,9 +17,9 @@ import time
 import numpy as np
 
 from lidar_slam.config import load_config
+from lidar_slam.eval.metrics import ate, rpe
 from lidar_slam.geometry import inverse, rotation_angle_deg
 from lidar_slam.io.sources import open_source
-from lidar_slam.metrics import ate, rpe
 from lidar_slam.pipeline import Pipeline
 
 

@@ -88,8 +88,14 @@ def main() -> None:
     args = ap.parse_args()
     # Here, not at the top: the loop worker process (spawned) imports this module, and the
     # simulator's open3d would add ~230 MB to it that `lidar-slam run`'s worker does not have.
-    from lidar_slam.sim import (PoseInterpolator, build_world, get_sensor, load_kitti_truth,
-                                     place_on_terrain, simulate_scan)
+    from lidar_slam.sim import (
+        PoseInterpolator,
+        build_world,
+        get_sensor,
+        load_kitti_truth,
+        place_on_terrain,
+        simulate_scan,
+    )
 
     args.out.mkdir(parents=True, exist_ok=True)
     truth = load_kitti_truth(KITTI_GT, args.sequence)

@@ -50,11 +50,11 @@ import yaml
 
 from lidar_slam.config import load_config
 from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.frontend.keyframes import KeyframeSelector
 from lidar_slam.geometry import inverse, relative, rotation_angle_deg, transform_points, yaw_rad
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import KittiSource
 from lidar_slam.io.trajectory import read_kitti_poses
-from lidar_slam.keyframes import KeyframeSelector
 from lidar_slam.loop import adapt
 from lidar_slam.loop.scan_context import ScanContextIndex, describe
 from lidar_slam.loop.verify import verify
@@ -268,12 +268,12 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
     import shutil
     import tempfile
 
-    from lidar_slam import metrics
     from lidar_slam.config import SlamConfig
+    from lidar_slam.eval import metrics
     from lidar_slam.io.sources import open_source
-    from lidar_slam.keyframes import KeyframeReader
     from lidar_slam.loop.detector import LoopDetector
     from lidar_slam.loop.verify import match_side, query_side
+    from lidar_slam.map.keyframes import KeyframeReader
 
     raw = yaml.safe_load((run / "config.yaml").read_text())
     raw["loop"]["scan_context"]["threshold"] = threshold

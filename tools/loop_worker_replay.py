@@ -22,9 +22,9 @@ import time
 from pathlib import Path
 
 from lidar_slam.config import load_config
-from lidar_slam.keyframes import TABLE_DTYPE, KeyframeReader
 from lidar_slam.loop import adapt
 from lidar_slam.loop.detector import LoopDetector
+from lidar_slam.map.keyframes import TABLE_DTYPE, KeyframeReader
 
 
 def main() -> None:

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lidar_slam import metrics
 from lidar_slam.config import dump_config, load_config
+from lidar_slam.eval import metrics
 from lidar_slam.geometry import from_xyz_quat
 from lidar_slam.io.sources import open_source
 

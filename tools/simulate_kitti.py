@@ -6,7 +6,7 @@ For each sequence: simulate_sequence() into OUT/XX (KITTI layout), then stock KI
 (kiss_icp.kiss_icp.KissICP, load_config(None) defaults) registers every scan with its per-point
 times (kiss-icp min-max normalises them to [0, 1] and deskews every point to the END of the sweep,
 so its pose i is compared with the true pose at stamp_i + max point time). Prints KITTI drift
-(t_err %, r_err deg/100 m, lidar_slam.metrics.kitti_drift) and seconds per frame.
+(t_err %, r_err deg/100 m, lidar_slam.eval.metrics.kitti_drift) and seconds per frame.
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ import numpy as np
 from kiss_icp.config import load_config
 from kiss_icp.kiss_icp import KissICP
 
+from lidar_slam.eval.metrics import ate, kitti_drift
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,
     read_kitti_calib_tr,
     read_kitti_poses,
     read_times,
 )
-from lidar_slam.metrics import ate, kitti_drift
 from lidar_slam.sim import PoseInterpolator, load_kitti_truth, simulate_sequence
 
 GT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_gt"

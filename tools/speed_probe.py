@@ -20,7 +20,7 @@ from collections import defaultdict
 import numpy as np
 
 import lidar_slam.frontend.deskew as deskew_mod
-import lidar_slam.odometry as odometry_mod
+import lidar_slam.frontend.odometry as odometry_mod
 import lidar_slam.pipeline as pipeline_mod
 from lidar_slam.config import load_config
 from lidar_slam.io.sources import open_source

@@ -54,7 +54,7 @@ def run_row(sequence: str, run_dir: Path, ground_truth: np.ndarray | None = None
             message: str = "", computed_now: bool = True) -> SequenceResult:
     """The row of a finished run folder: counts from summary.json, drift and ATE of
     poses_kitti.txt against ground_truth (T_world_lidar of every input scan, or None)."""
-    from lidar_slam.evaluate import trajectory_metrics
+    from lidar_slam.eval.evaluate import trajectory_metrics
     from lidar_slam.io.trajectory import read_kitti_poses
 
     summary = json.loads((run_dir / "summary.json").read_text())

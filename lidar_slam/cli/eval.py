@@ -1,4 +1,4 @@
-"""`lidar-slam eval`: drift, ATE and RPE of a trajectory (lidar_slam.evaluate)."""
+"""`lidar-slam eval`: drift, ATE and RPE of a trajectory (lidar_slam.eval.evaluate)."""
 
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ def eval_cmd(
 
     EST and GT: KITTI (12 numbers per line) or TUM (stamp tx ty tz qx qy qz qw) files.
     """
-    from lidar_slam.evaluate import format_table, run_eval
+    from lidar_slam.eval.evaluate import format_table, run_eval
 
     metrics = run_eval(est, gt, fmt=fmt.value, calib_path=calib, out_dir=out, loops_csv=loops,
                        start=start, gt_times=gt_times, revisit_gap=revisit_gap,

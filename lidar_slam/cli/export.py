@@ -57,13 +57,13 @@ def export(
     Points are the keyframe clouds placed with the final poses (the frame of poses_kitti.txt),
     with intensity and the id of their keyframe.
     """
-    from lidar_slam.saved_map import open_map
+    from lidar_slam.map.saved import open_map
 
     for name, value in (("--voxel", voxel), ("--resolution", resolution)):
         if value is not None and not value > 0:
             raise fail(f"{name} must be positive, got {value:g}")
     if occupancy:
-        from lidar_slam.occupancy import OccupancyParams, build_grid, write_map_server
+        from lidar_slam.map.occupancy import OccupancyParams, build_grid, write_map_server
 
         params = OccupancyParams(resolution_m=resolution, band_m=_parse_band(band))
         folder = out if out is not None else run_dir
@@ -82,7 +82,13 @@ def export(
         h, w = grid.state.shape
         typer.echo(f"wrote {png} and {yaml_path} ({w} x {h} cells of {resolution:g} m)")
         return
-    from lidar_slam.export import PointFormat, format_of, map_points, require_laspy, write_points
+    from lidar_slam.map.export import (
+        PointFormat,
+        format_of,
+        map_points,
+        require_laspy,
+        write_points,
+    )
 
     if out is None:
         raise fail("--out FILE is needed (or --occupancy)")

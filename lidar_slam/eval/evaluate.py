@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam import metrics
 from lidar_slam.errors import InputError
+from lidar_slam.eval import metrics
 from lidar_slam.geometry import from_xyz_quat, inverse
 from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.io.trajectory import (

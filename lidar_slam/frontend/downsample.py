@@ -2,12 +2,12 @@
 
 A point's voxel is floor(point / voxel_m) on each axis (voxel_cells); every NumPy downsampling
 of the package keys its points by it. Two reductions: "mean" (the centroid of each voxel's
-points, with their mean intensity: the run's map, whose streamed form in lidar_slam.mapping adds
+points, with their mean intensity: the run's map, whose streamed form in lidar_slam.map.writer adds
 up the same per-voxel sums tile by tile, sum_by_key) and "first" (the first input point of each
 voxel, in input order: `lidar-slam export --voxel`).
 
 Not here, on purpose: the odometry's selection and kiss-icp's own downsampling
-(kiss_icp's C++ `_voxel_down_sample`, lidar_slam.odometry) and small_gicp's voxel centroids
+(kiss_icp's C++ `_voxel_down_sample`, lidar_slam.frontend.odometry) and small_gicp's voxel centroids
 (lidar_slam.registration): the poses and loop constraints are those libraries' results bit for
 bit. Plain NumPy so that odometry-only runs never pay for importing open3d.
 """

@@ -12,9 +12,9 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.geometry import relative, to_xyz_quat, transform_points
-from lidar_slam.keyframes import KeyframeStore
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import Side, match_side, query_side, verify
+from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)

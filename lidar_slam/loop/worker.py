@@ -30,7 +30,7 @@ from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPool
 from pathlib import Path
 
 from lidar_slam.config import SlamConfig
-from lidar_slam.keyframes import KeyframeReader, KeyframeStore
+from lidar_slam.map.keyframes import KeyframeReader, KeyframeStore
 
 NICENESS = 10
 # The worker process runs at the odometry's priority (instead of SCHED_IDLE) while its backlog

@@ -16,7 +16,7 @@ from lidar_slam.errors import LidarSlamError
 from lidar_slam.frontend.downsample import voxel_first_indices
 from lidar_slam.io.atomic import atomic_path
 from lidar_slam.io.ply import write_ply
-from lidar_slam.saved_map import SavedMap
+from lidar_slam.map.saved import SavedMap
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Keyframes: selection by travelled distance and rotation, and their on-disk store.
+"""The keyframe store: every keyframe's cloud on disk (selection: frontend/keyframes.py).
 
 The store keeps every keyframe's cloud on disk in the run folder, so memory does not grow with the
 drive; only a small table (ids, frames, odometry poses) and a bounded cache of recent clouds stay
@@ -37,9 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.config import KeyframeConfig
 from lidar_slam.errors import InputError
-from lidar_slam.geometry import relative, rotation_angle_deg
 from lidar_slam.io.atomic import write_atomic
 from lidar_slam.types import Keyframe
 
@@ -50,27 +48,6 @@ DESCRIPTORS = "descriptors.bin"
 TABLE_DTYPE = np.dtype([("id", "<i8"), ("frame_index", "<i8"), ("first", "<i8"), ("count", "<i8"),
                         ("T", "<f8", (4, 4)), ("has_intensity", "u1"), ("stamp_s", "<f8")])
 POINT_DTYPE = np.dtype("<f4")  # 4 per point: x, y, z, intensity
-
-
-class KeyframeSelector:
-    """Declares a new keyframe once the sensor moved distance_m or turned rotation_deg."""
-
-    def __init__(self, cfg: KeyframeConfig):
-        self.cfg = cfg
-        self.last: np.ndarray | None = None
-
-    def is_keyframe(self, T_world_scan: np.ndarray) -> bool:
-        """True for the first scan and whenever the motion since the last keyframe is large enough."""
-        if self.last is None:
-            self.last = T_world_scan
-            return True
-        T_kf_scan = relative(self.last, T_world_scan)
-        moved = np.linalg.norm(T_kf_scan[:3, 3]) >= self.cfg.distance_m
-        turned = rotation_angle_deg(T_kf_scan) >= self.cfg.rotation_deg
-        if moved or turned:
-            self.last = T_world_scan
-            return True
-        return False
 
 
 class KeyframeStore:

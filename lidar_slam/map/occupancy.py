@@ -24,8 +24,8 @@ import numpy as np
 
 from lidar_slam.errors import LidarSlamError
 from lidar_slam.io.atomic import atomic_path, write_text_atomic
+from lidar_slam.map.saved import SavedMap
 from lidar_slam.registration import level_ground
-from lidar_slam.saved_map import SavedMap
 
 log = logging.getLogger(__name__)
 

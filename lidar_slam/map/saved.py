@@ -1,6 +1,6 @@
 """A finished run folder opened as a map: its keyframe clouds, their final poses in the map frame,
 their Scan Context descriptors and the run's config (the layout is documented in
-lidar_slam.keyframes). What `localize` and `export` read."""
+lidar_slam.map.keyframes). What `localize` and `export` read."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ from lidar_slam.config import LocalizeConfig, SlamConfig, load_config, overlay_c
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import inverse, rotation_angle_deg, transform_points
 from lidar_slam.io.trajectory import read_tum
-from lidar_slam.keyframes import TABLE_DTYPE, KeyframeReader, check_version
 from lidar_slam.loop import adapt
 from lidar_slam.loop.scan_context import describe
+from lidar_slam.map.keyframes import TABLE_DTYPE, KeyframeReader, check_version
 from lidar_slam.types import Keyframe
 
 log = logging.getLogger(__name__)

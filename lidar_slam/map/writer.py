@@ -1,7 +1,7 @@
 """Global map: keyframe clouds placed with the final poses, voxel-downsampled, written as PLY.
 
 Built by streaming, so memory does not grow with the drive (see write_map). read_ply (from
-lidar_slam.io.ply) reads map.ply back; the README documents it as lidar_slam.mapping.read_ply.
+lidar_slam.io.ply) reads map.ply back; the README documents it as lidar_slam.map.writer.read_ply.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 from lidar_slam.frontend.downsample import sum_by_key, voxel_cells
 from lidar_slam.geometry import transform_points
 from lidar_slam.io.ply import copy_into_ply, read_ply, xyz_fields, xyz_rows
-from lidar_slam.keyframes import KeyframeStore
+from lidar_slam.map.keyframes import KeyframeStore
 
 __all__ = ["read_ply", "write_map"]
 

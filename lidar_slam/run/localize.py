@@ -58,9 +58,9 @@ def localize_sequence(data: Path, map_dir: Path, out: Path, *, config: Path | No
     from lidar_slam import __version__
     from lidar_slam.io.sources import open_source, read_ahead
     from lidar_slam.localize import Localizer
+    from lidar_slam.map.saved import open_map
     from lidar_slam.provenance import git_commit
     from lidar_slam.run.outputs import LOCALIZE_OUTPUTS, write_localization
-    from lidar_slam.saved_map import open_map
 
     T_init = parse_initial_pose(initial_pose)
     t0 = time.perf_counter()

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam import metrics
 from lidar_slam.config import SlamConfig, dump_config
-from lidar_slam.evaluate import run_summary_metrics
+from lidar_slam.eval import metrics
+from lidar_slam.eval.evaluate import run_summary_metrics
 from lidar_slam.geometry import inverse
 from lidar_slam.io.atomic import atomic_path, write_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
-from lidar_slam.keyframes import DESCRIPTORS, KeyframeStore
-from lidar_slam.mapping import write_map
+from lidar_slam.map.keyframes import DESCRIPTORS, KeyframeStore
+from lidar_slam.map.writer import write_map
 from lidar_slam.pipeline import RunResult
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,7 @@ def write_loops(out_dir: Path, result: RunResult) -> dict:
 
 def write_map_manifest(store: KeyframeStore, T_map_kf: dict[int, np.ndarray],
                        cfg: SlamConfig) -> None:
-    """Make the run's keyframe store a reusable map (see lidar_slam.keyframes): the final
+    """Make the run's keyframe store a reusable map (see lidar_slam.map.keyframes): the final
     keyframe poses in the map frame and the manifest that vouches for them."""
     if len(T_map_kf) != len(store):
         log.warning("no map manifest: %d final poses for %d keyframes", len(T_map_kf),

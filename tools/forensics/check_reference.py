@@ -40,11 +40,11 @@ import numpy as np
 
 from lidar_slam.backend.factors import sigmas_to_information
 from lidar_slam.backend.pose_graph import PoseGraph
+from lidar_slam.eval.metrics import ate
 from lidar_slam.frontend.deskew import deskew
 from lidar_slam.geometry import inverse, rotation_angle_deg, transform_points
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import read_kitti_poses, write_kitti_poses
-from lidar_slam.metrics import ate
 from lidar_slam.o3d import o3d
 
 reg = o3d.pipelines.registration

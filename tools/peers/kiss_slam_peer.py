@@ -22,15 +22,15 @@ import json
 from pathlib import Path
 
 import numpy as np
+from kiss_slam.config import load_config  # noqa: E402  (after the open3d preload)
+from kiss_slam.slam import KissSLAM  # noqa: E402
 
-# open3d (imported by kiss_slam) needs libusb preloaded on this machine; lidar_slam.o3d does that.
-from lidar_slam.o3d import o3d  # noqa: F401
 from lidar_slam.geometry import inverse, to_xyz_quat
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import write_kitti_poses
 
-from kiss_slam.config import load_config  # noqa: E402  (after the open3d preload)
-from kiss_slam.slam import KissSLAM  # noqa: E402
+# open3d (imported by kiss_slam) needs libusb preloaded on this machine; lidar_slam.o3d does that.
+from lidar_slam.o3d import o3d  # noqa: F401
 
 
 def normalised_times(point_times: np.ndarray | None) -> np.ndarray:
