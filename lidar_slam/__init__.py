@@ -1,4 +1,5 @@
-"""lidar_slam: lidar SLAM from a folder of scans or a rosbag to a drift-corrected trajectory and map.
+"""lidar_slam: lidar SLAM from a folder of scans or a rosbag to a drift-corrected trajectory and
+map.
 
 Importing it has no side effects; a run's process tuning is lidar_slam.runtime.tune_process().
 """

@@ -6,7 +6,8 @@ import numpy as np
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) as (qx, qy, qz, qw) with qw >= 0 from rotation matrices (..., 3, 3).
+    """Unit quaternions (..., 4) as (qx, qy, qz, qw) with qw >= 0 from rotation matrices (..., 3,
+    3).
 
     Uses the symmetric 4x4 (Bar-Itzhack) eigenvector, so slightly non-orthonormal input gives the
     nearest rotation's quaternion.

@@ -1,7 +1,8 @@
 """Registration: the only module that imports small_gicp, and ground levelling.
 
 small_gicp does the voxel centroids, normals / covariances, KD-trees and ICP of the package:
-the odometry's refinement of slow scans (lidar_slam.frontend.odometry), localisation's tracking against a
+the odometry's refinement of slow scans (lidar_slam.frontend.odometry), localisation's tracking
+against a
 saved map (lidar_slam.localize) and loop verification (lidar_slam.loop.verify). Always on one
 thread: its multi-threaded sums are not reproducible bit for bit. Its voxel centroids stay
 small_gicp's (not lidar_slam.frontend.downsample's): the poses and loop constraints are its

@@ -320,7 +320,8 @@ def test_backend_only_gtsam_graph_imports_gtsam():
 
 
 def test_backend_incremental_agrees_with_full_lm_huber():
-    """The pipeline's back-end, fed keyframe by keyframe with loops arriving late (window solves), ends
+    """The pipeline's back-end, fed keyframe by keyframe with loops arriving late (window solves),
+    ends
     within 1 mm / 0.01 deg of one full LM solve of the same graph (Huber loop edges)."""
     from lidar_slam.backend.slam_backend import Backend
     from lidar_slam.config import BackendConfig

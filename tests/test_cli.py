@@ -39,7 +39,8 @@ def test_folder_without_scans(tmp_path):
 
 
 def test_bin_of_wrong_size_names_the_file(tmp_path):
-    np.random.default_rng(0).uniform(-9, 9, (500, 4)).astype(np.float32).tofile(tmp_path / "000000.bin")
+    points = np.random.default_rng(0).uniform(-9, 9, (500, 4)).astype(np.float32)
+    points.tofile(tmp_path / "000000.bin")
     (tmp_path / "000001.bin").write_bytes(b"\0" * 30)
     proc = lidar_slam("run", tmp_path, "--out", tmp_path / "o", "--no-loops")
     assert_one_line_error(proc, "000001.bin", "not a multiple of 16")
@@ -156,7 +157,7 @@ def test_sigterm_writes_partial_outputs(tmp_path, ouster_loop):
     out = tmp_path / "o"
     proc = subprocess.Popen([sys.executable, "-m", "lidar_slam.cli", "run", str(ouster_loop),
                              "--out", str(out), "--no-loops"], stderr=subprocess.PIPE, text=True)
-    odo = _wait_for_odometry_lines(proc, out, 3)
+    _wait_for_odometry_lines(proc, out, 3)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert "Traceback" not in err
@@ -610,7 +611,8 @@ def test_version_and_help_for_every_option():
     assert proc.returncode == 0 and proc.stdout.startswith(f"lidar-slam {__version__}")
     group = typer.main.get_command(app)
     # param_type_name, not isinstance: new typer ships its own click with its own Option class
-    options = [p for cmd in group.commands.values() for p in cmd.params if p.param_type_name == "option"]
+    options = [p for cmd in group.commands.values() for p in cmd.params
+               if p.param_type_name == "option"]
     assert len(options) > 20  # the check sees typer's options (not vacuously empty)
     missing = [f"{name} {param.name}" for name, cmd in group.commands.items()
                for param in cmd.params if param.param_type_name == "option" and not param.help]

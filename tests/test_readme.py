@@ -1,4 +1,5 @@
-"""The README's Python examples run as written (from a folder holding sample_scans/ and configs/)."""
+"""The README's Python examples run as written (from a folder holding sample_scans/ and
+configs/)."""
 
 import re
 import subprocess

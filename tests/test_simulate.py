@@ -1,4 +1,5 @@
-"""The lidar simulator: reproducible, true per-column motion distortion, one terrain, KITTI layout."""
+"""The lidar simulator: reproducible, true per-column motion distortion, one terrain, KITTI
+layout."""
 
 from __future__ import annotations
 
@@ -239,5 +240,7 @@ def test_simulate_elevation_error_biases_points_like_kittis_lasers():
     exact = simulate_scan(world, base, at, stamps[0], np.random.default_rng(0))
     tilted = simulate_scan(world, dataclasses.replace(base, elevation_error_deg=0.5), at,
                            stamps[0], np.random.default_rng(0))
-    ground = lambda s: s.points[(s.points[:, 2] < -1.0) & (np.hypot(*s.points[:, :2].T) < 15)]
+    def ground(s):
+        return s.points[(s.points[:, 2] < -1.0) & (np.hypot(*s.points[:, :2].T) < 15)]
+
     assert np.median(ground(tilted)[:, 2]) < np.median(ground(exact)[:, 2]) - 0.02

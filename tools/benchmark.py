@@ -8,10 +8,12 @@ Every system runs as its own process on the scans lidar_slam's readers produce (
 identical points; no KITTI vertical correction unless a lidar-slam config asks for it). Cost is
 whole-process: wall time and peak RSS from os.wait4's rusage; frames/s = frames / median wall time
 over the repeats (interleaved, so every system sees the same machine load), peak MB = max over the
-repeats. Accuracy comes from lidar_slam.eval.evaluate.run_eval and lidar_slam.eval.metrics on the outputs of
+repeats. Accuracy comes from lidar_slam.eval.evaluate.run_eval and lidar_slam.eval.metrics on the
+outputs of
 the last repeat, against the sequence's ground truth (reference poses for the Ouster set).
 
-lidar-slam's rows are scored by the code of `lidar-slam batch` (lidar_slam.batch.results.run_row: the
+lidar-slam's rows are scored by the code of `lidar-slam batch` (lidar_slam.batch.results.run_row:
+the
 same t_err, r_err, ATE and counts as a batch's results table), and its runs also get that table,
 DIR/lidar-slam/results.{md,json,csv}, so a benchmark and a batch can be compared row by row.
 
@@ -318,7 +320,8 @@ def markdown(rows: list[Row], meta: dict) -> str:
     lines.append(f"frames/s: frames / median whole-process wall time over {meta['repeats']} "
                  "interleaved repeat(s), interpreter start-up and imports included, input files "
                  "read once beforehand (warm page cache); peak MB: max over the repeats of the "
-                 "summed RSS of the run's processes (sampled 4/s) or its own peak (os.wait4). t_err/r_err: KITTI devkit segments of 100-800 m "
+                 "summed RSS of the run's processes (sampled 4/s) or its own peak (os.wait4). "
+                 "t_err/r_err: KITTI devkit segments of 100-800 m "
                  "(n/a when the path is shorter). ATE: RMSE after rigid Umeyama alignment. Loops "
                  "correct: estimated T_match_query within 1 m / 5 deg of the truth.")
     for seq, ratio in meta["fps_vs_kiss_icp"].items():
@@ -446,7 +449,8 @@ def main(argv: list[str] | None = None) -> int:
                 write_kitti_poses(gt_end_file, gt_end)
         seq_rows = {s: Row(seq.name, s, seq.n) for s in systems}
         mb_read, secs = warm_page_cache(seq.path)
-        print(f"{seq.name}: read {mb_read:.0f} MB in {secs:.1f} s to warm the page cache", flush=True)
+        print(f"{seq.name}: read {mb_read:.0f} MB in {secs:.1f} s to warm the page cache",
+              flush=True)
         for rep in range(args.repeats):  # interleaved so every system sees the same load
             for s, row in seq_rows.items():
                 if row.error:

@@ -49,7 +49,7 @@ def main() -> None:
         cfg = load_config(args.config, {"loop": {"enabled": False},
                                         "data": {"deskew_all_points": all_points}})
         runs[name] = odometry(scans, cfg)
-    (A, ms_a), (B, ms_b) = runs["all points"], runs["used points"]
+    (A, _), (B, _) = runs["all points"], runs["used points"]
     dA, dB = inverse(A[:-1]) @ A[1:], inverse(B[:-1]) @ B[1:]
     E = inverse(dA) @ dB
     dt_mm = 1e3 * np.linalg.norm(E[:, :3, 3], axis=1)

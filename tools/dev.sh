@@ -3,6 +3,7 @@
 # open3d's missing libusb-1.0.so.0 is supplied by the libusb-package wheel at import time).
 #   bash tools/dev.sh demo   install into .venv and run lidar-slam on sample_scans/ -> runs/sample
 #   bash tools/dev.sh test   install with the test and cluster (Ray) extras and run the test suite
+#   bash tools/dev.sh lint   install with the test extra and run ruff (the rules: pyproject.toml)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${VENV:-.venv}
@@ -22,8 +23,12 @@ case "$cmd" in
     "$VENV/bin/python" -m pip install -q -e ".[test,cluster]"
     "$VENV/bin/python" -m pytest -q "$@"
     ;;
+  lint)
+    "$VENV/bin/python" -m pip install -q -e ".[test]"
+    "$VENV/bin/ruff" check . "$@"
+    ;;
   *)
-    echo "usage: bash tools/dev.sh demo|test [args...]" >&2
+    echo "usage: bash tools/dev.sh demo|test|lint [args...]" >&2
     exit 2
     ;;
 esac

@@ -44,7 +44,7 @@ import psutil
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lidar_slam.io.trajectory import read_kitti_poses
+from lidar_slam.io.trajectory import read_kitti_poses  # noqa: E402 (after the sys.path line)
 
 
 def _members(pgid: int) -> list[int]:

@@ -18,7 +18,8 @@ with the reference poses (the pipeline would use its odometry poses).
 
 python tools/loop_tuning.py cost [KITTI_SEQ_DIR] [--config FILE] [--set a.b=value] [--repeats N]
 
-cost: per keyframe on KITTI-sized scans (~120k points). KITTI 00 frames 0-15 hold no loop, so the last scan is queried against the others (recent ones
+cost: per keyframe on KITTI-sized scans (~120k points). KITTI 00 frames 0-15 hold no loop, so the
+last scan is queried against the others (recent ones
 not excluded) and verified against several earlier ones 3-13 m back, with the ground truth
 saying whether the verified pose is right (1 m / 5 deg). Keyframe clouds are built like the
 pipeline's (range <= map.max_range_m, keyframes.cloud_voxel_m voxels); query and match clouds are
@@ -250,7 +251,8 @@ def cost(argv: list[str]) -> None:
             if cand.match == m:
                 dist, yaw = cand.score, cand.yaw_guess_rad
         cand = LoopCandidate(q, m, dist, yaw)
-        v, w, c = timed(lambda: verify(cand, source, target, v_cfg), args.repeats)
+        v, w, c = timed(lambda cand=cand, target=target: verify(cand, source, target, v_cfg),
+                        args.repeats)
         d = inverse(relative(poses[m], poses[q])) @ v.T_match_query
         err_m, err_deg = float(np.linalg.norm(d[:3, 3])), float(rotation_angle_deg(d))
         ok = err_m < 1.0 and err_deg < 5.0
@@ -350,10 +352,11 @@ def gates(argv: list[str]) -> None:
         rows = replay_candidates(Path(run), data, args.threshold)
         table[data] = rows
         ok = [r for r in rows if r["passed"]]
+        low = sorted(round(r["margin"], 3) for r in ok if r["correct"] and r["margin"] < 0.12)
         print(f"{data}: {len(rows)} candidates verified; passing every gate but the margin: "
               f"{len(ok)}; margins of the wrong ones "
               f"{sorted(round(r['margin'], 3) for r in ok if not r['correct'])}, true ones below "
-              f"0.12 {sorted(round(r['margin'], 3) for r in ok if r['correct'] and r['margin'] < 0.12)}")
+              f"0.12 {low}")
     names = [Path(d).name for _, d in runs]
     print("threshold margin  " + "  ".join(f"{n:>22}" for n in names) +
           "   (loops accepted / wrong / verifications)")
@@ -370,7 +373,8 @@ def gates(argv: list[str]) -> None:
 def main() -> None:
     commands = {"sweep": sweep, "cost": cost, "gates": gates}
     if len(sys.argv) < 2 or sys.argv[1] not in commands:
-        sys.exit("usage: python tools/loop_tuning.py sweep|cost|gates [args...] (see the docstring)")
+        sys.exit("usage: python tools/loop_tuning.py sweep|cost|gates [args...] "
+                 "(see the docstring)")
     commands[sys.argv[1]](sys.argv[2:])
 
 

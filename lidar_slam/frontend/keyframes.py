@@ -17,7 +17,8 @@ class KeyframeSelector:
         self.last: np.ndarray | None = None
 
     def is_keyframe(self, T_world_scan: np.ndarray) -> bool:
-        """True for the first scan and whenever the motion since the last keyframe is large enough."""
+        """True for the first scan and whenever the motion since the last keyframe is large
+        enough."""
         if self.last is None:
             self.last = T_world_scan
             return True

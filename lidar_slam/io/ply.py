@@ -1,7 +1,8 @@
 """PLY files: binary little-endian, one vertex element of named float32 / int32 / uint32 columns.
 
 The one PLY writer of the package: the run's map.ply (lidar_slam.map.writer, streamed: header first,
-then a body built tile by tile) and `lidar-slam export`'s PLY (lidar_slam.map.export) both go through
+then a body built tile by tile) and `lidar-slam export`'s PLY (lidar_slam.map.export) both go
+through
 it, and always atomically.
 """
 

@@ -18,7 +18,8 @@ INTENSITY_FIELDS = ("intensity", "intensities", "reflectivity", "remission")
 
 @dataclass(frozen=True)
 class CloudData:
-    """Raw contents of one file: points (N,3) float64, times (N,) seconds or None, intensity or None."""
+    """Raw contents of one file: points (N,3) float64, times (N,) seconds or None, intensity or
+    None."""
 
     points: np.ndarray
     times: np.ndarray | None

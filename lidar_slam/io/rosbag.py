@@ -491,8 +491,9 @@ class _Db3Scan(_BagReader):
             # sqlite refuses a file shorter than its header's page count as corrupt unless the
             # schema is "writable"; nothing is written (read-only connection).
             self.db.execute("PRAGMA writable_schema=ON")
-            self.topic_rows = {tid: (ros1_normalize(name), normalize_msgtype(typ)) for tid, name, typ
-                               in self.db.execute("SELECT id, name, type FROM topics")}
+            topics = self.db.execute("SELECT id, name, type FROM topics")
+            self.topic_rows = {tid: (ros1_normalize(name), normalize_msgtype(typ))
+                               for tid, name, typ in topics}
             try:
                 self.definitions = {normalize_msgtype(t): (e, d) for t, e, d in self.db.execute(
                     "SELECT topic_type, encoding, encoded_message_definition "

@@ -174,7 +174,8 @@ class KittiSource:
             if cand.is_file():
                 poses_cam = read_kitti_poses(cand)
                 if len(poses_cam) != len(self.files):
-                    raise InputError(cand, f"has {len(poses_cam)} poses for {len(self.files)} scans")
+                    raise InputError(cand, f"has {len(poses_cam)} poses for "
+                                           f"{len(self.files)} scans")
                 self.ground_truth = camera_to_lidar_poses(poses_cam, self.Tr)
                 break
 

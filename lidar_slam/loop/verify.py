@@ -78,7 +78,8 @@ def _icp(src: Cloud, tgt: Cloud, T0: np.ndarray, max_corr_m: float,
     """One ICP run query -> match from T0; returns T_match_query. small_gicp's PLANE_ICP
     weighs each axis of the residual by the normal's component, so unlike open3d's
     point-to-plane it resists sliding along oblique walls and needs more iterations to pull in
-    metres (tools/loop_tuning.py sweep --every-scan: 77 loops accepted vs open3d's 88, none wrong)."""
+    metres (tools/loop_tuning.py sweep --every-scan: 77 loops accepted vs open3d's 88, none
+    wrong)."""
     return align(tgt.cloud, tgt.tree, src.cloud, T0, max_corr_m, cfg.max_iterations,
                  "GICP" if cfg.method == "gicp" else "PLANE_ICP")
 

@@ -1,5 +1,6 @@
 """A saved map's points as a file other tools open: PLY (lidar_slam.io.ply), PCD (open3d's
-writer) or LAS / LAZ (laspy, the only module that imports it), with intensity and the id of the keyframe each point
+writer) or LAS / LAZ (laspy, the only module that imports it), with intensity and the id of the
+keyframe each point
 comes from. Points are the keyframe clouds as the run stored them, placed with the final poses in
 the map frame (the frame of the run's poses_kitti.txt); --voxel keeps the first of each voxel."""
 

@@ -86,7 +86,8 @@ def get_sensor(sensor: str | SensorModel) -> SensorModel:
 
 
 class PoseInterpolator:
-    """T_world_lidar at any time: slerp/lerp between key poses, linear extrapolation past the ends."""
+    """T_world_lidar at any time: slerp/lerp between key poses, linear extrapolation past the
+    ends."""
 
     def __init__(self, stamps_s: np.ndarray, poses: np.ndarray):
         self.t = np.asarray(stamps_s, dtype=float)

@@ -117,7 +117,8 @@ def _write_readme(out: Path, summary: SimSummary) -> None:
         "velodyne_times/NNNNNN.bin: float32 seconds of each point after the scan stamp; the stamp\n"
         "  (times.txt) is the START of the sweep and the scan's pose refers to that instant.\n"
         "poses.txt: KITTI camera-frame poses P_i = Tr @ T_seq_lidar_i @ inv(Tr) (Tr from\n"
-        "  calib.txt); read back with inv(Tr) @ P_i @ Tr. The sequence frame is the lidar frame of\n"
+        "  calib.txt); read back with inv(Tr) @ P_i @ Tr. The sequence frame is the lidar "
+        "frame of\n"
         "  scan 0 (P_0 = I). These are the poses actually simulated (z and roll/pitch from the\n"
         "  fitted terrain), not the input trajectory.\n")
 

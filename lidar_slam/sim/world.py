@@ -101,7 +101,8 @@ def fit_terrain(ground_xyz: np.ndarray, bounds_xy: np.ndarray, resolution_m: flo
     np.add.at(w, (iy, ix), 1.0)
     np.add.at(wz, (iy, ix), ground_xyz[:, 2])
     s = sigma_m / resolution_m
-    num = gaussian_filter(wz, s, mode="constant") + 1e-2 * gaussian_filter(wz, 5 * s, mode="constant")
+    num = (gaussian_filter(wz, s, mode="constant")
+           + 1e-2 * gaussian_filter(wz, 5 * s, mode="constant"))
     den = gaussian_filter(w, s, mode="constant") + 1e-2 * gaussian_filter(w, 5 * s, mode="constant")
     mean = float(np.mean(ground_xyz[:, 2]))
     h = (num + 1e-12 * mean) / (den + 1e-12)
@@ -112,7 +113,8 @@ def fit_terrain(ground_xyz: np.ndarray, bounds_xy: np.ndarray, resolution_m: flo
 
 
 def place_on_terrain(poses: np.ndarray, terrain: Terrain, mount_height_m: float) -> np.ndarray:
-    """Poses with the input x, y and heading, z = ground + mount height, roll/pitch = ground normal."""
+    """Poses with the input x, y and heading, z = ground + mount height, roll/pitch = ground
+    normal."""
     xy = poses[:, :2, 3]
     g = terrain.gradient(xy)
     n = np.c_[-g, np.ones(len(g))]
@@ -436,7 +438,8 @@ def _ground_mesh(terrain: Terrain, builder: _Builder, reach_m: float
 
 def build_world(poses_world_lidar: np.ndarray, sensor: str | SensorModel = "hdl64", seed: int = 0,
                 params: WorldParams | None = None) -> World:
-    """The street world along poses (K, 4, 4): terrain fitted to z - mount height, objects seeded."""
+    """The street world along poses (K, 4, 4): terrain fitted to z - mount height, objects
+    seeded."""
     sensor = get_sensor(sensor)
     params = params or WorldParams()
     t0 = time.perf_counter()
