@@ -20,6 +20,15 @@ from lidar_slam.io.trajectory import (
     read_times,
     write_kitti_poses,
 )
+from lidar_slam.sim.inertial import (
+    GnssOptions,
+    ImuOptions,
+    SmoothTrajectory,
+    simulate_gnss,
+    simulate_imu,
+    write_gnss,
+    write_imu,
+)
 from lidar_slam.sim.sensor import PoseInterpolator, SensorModel, get_sensor
 from lidar_slam.sim.world import (
     ALBEDO,
@@ -96,6 +105,10 @@ class SimSummary:
     world_seconds: float
     n_triangles: int
     n_objects: dict = dataclasses.field(default_factory=dict)
+    imu: ImuOptions | None = None
+    gnss: GnssOptions | None = None
+    n_imu: int = 0
+    n_gnss: int = 0
 
 
 def write_calib(path: Path, Tr_cam_lidar: np.ndarray) -> None:
@@ -120,7 +133,45 @@ def _write_readme(out: Path, summary: SimSummary) -> None:
         "  calib.txt); read back with inv(Tr) @ P_i @ Tr. The sequence frame is the lidar "
         "frame of\n"
         "  scan 0 (P_0 = I). These are the poses actually simulated (z and roll/pitch from the\n"
-        "  fitted terrain), not the input trajectory.\n")
+        "  fitted terrain), not the input trajectory.\n" + _inertial_readme(summary))
+
+
+def _inertial_readme(summary: SimSummary) -> str:
+    if summary.imu is None and summary.gnss is None:
+        return ""
+    text = ("Trajectory: a cubic spline through the positions and scipy's RotationSpline through\n"
+            "  the attitudes of poses.txt; the points, the IMU and the GNSS all come from it.\n"
+            "  The world frame (T_world_seq.txt: the sequence frame in it, 12 numbers, row-major\n"
+            "  3x4) is gravity-aligned, z up, gravity 9.81 m/s^2, and is read as ENU at the GNSS\n"
+            "  datum.\n")
+    if summary.imu is not None:
+        o, nz = summary.imu, summary.imu.noise
+        text += (
+            f"imu.csv: {summary.n_imu} samples at {o.rate_hz:g} Hz from the first stamp to the "
+            "end of the\n  last sweep; stamp_s,wx,wy,wz (rad/s),ax,ay,az (m/s^2, specific "
+            "force), IMU frame.\n"
+            "  T_lidar_imu (row-major 3x4): "
+            f"{' '.join(f'{v:g}' for v in np.asarray(o.T_lidar_imu)[:3].ravel())}"
+            "\n  Noise (continuous time): gyro "
+            f"{nz.gyro_noise_density:.3g} rad/s/sqrt(Hz), accel {nz.accel_noise_density:.3g} "
+            f"m/s^2/sqrt(Hz),\n  bias random walk gyro {nz.gyro_bias_random_walk:.3g} "
+            f"rad/s^2/sqrt(Hz), accel {nz.accel_bias_random_walk:.3g} m/s^3/sqrt(Hz),\n"
+            f"  initial bias sigma gyro {nz.gyro_bias_sigma:.3g} rad/s, accel "
+            f"{nz.accel_bias_sigma:.3g} m/s^2.\n"
+            "imu_truth.csv: the noise-free gyro and specific force, the biases in imu.csv\n"
+            "  (measured = truth + bias + white noise) and the IMU's velocity in the world.\n")
+    if summary.gnss is not None:
+        g = summary.gnss
+        text += (
+            f"gnss.csv: {summary.n_gnss} fixes at {g.rate_hz:g} Hz (WGS84 lat, lon, ellipsoidal "
+            f"height);\n  datum {g.datum[0]:.6f} {g.datum[1]:.6f} {g.datum[2]:g} m, lever arm "
+            f"{' '.join(f'{v:g}' for v in g.lever_arm_m)} m (lidar frame), white noise "
+            f"{g.sigma_h_m:g} m\n  horizontal / {g.sigma_v_m:g} m vertical, "
+            f"{g.dropout:.0%} of epochs dropped, {g.jump_fraction:.0%} jumped "
+            f"{g.jump_range_m[0]:g}-{g.jump_range_m[1]:g} m (multipath).\n"
+            "gnss_truth.csv: every epoch, the antenna's true ENU and WGS84 position, dropped "
+            "(0/1), jump_m.\n")
+    return text
 
 
 def sequence_world(poses_world_lidar: np.ndarray, start: int, stop: int,
@@ -140,12 +191,17 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
                       sensor: str | SensorModel = "hdl64", seed: int = 0, start: int = 0,
                       n_scans: int | None = None, Tr_cam_lidar: np.ndarray | None = None,
                       params: WorldParams | None = None,
-                      on_scan: Callable[[int], None] | None = None) -> SimSummary:
+                      on_scan: Callable[[int], None] | None = None,
+                      imu: ImuOptions | None = None,
+                      gnss: GnssOptions | None = None) -> SimSummary:
     """Simulate scans start..start+n_scans of a trajectory into a KITTI-layout folder out_dir.
 
     poses_world_lidar (K, 4, 4) with stamps_s (K,) in seconds. The world is built along that
     stretch only; the same seed gives the same bytes. Every file is written whole or not at all
     (temporary file + rename); on_scan(k) is called after scan k is written (progress).
+    With imu and/or gnss, the poses between stamps come from a SmoothTrajectory (twice
+    differentiable: what an IMU measures) instead of slerp/lerp, and imu.csv / gnss.csv and their
+    truth files are written from it; without them the output is unchanged.
     """
     sensor = get_sensor(sensor)
     poses_world_lidar = np.asarray(poses_world_lidar, dtype=float)
@@ -161,7 +217,9 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
     world_s = time.perf_counter() - t0
     poses = place_on_terrain(poses_world_lidar[start:stop], world.terrain, sensor.mount_height_m)
     stamps = stamps_s[start:stop]
-    interp = PoseInterpolator(stamps, poses)
+    smooth = imu is not None or gnss is not None
+    interp = _smooth(poses_world_lidar, stamps_s, start, stop, world, sensor) if smooth \
+        else PoseInterpolator(stamps, poses)
     out = Path(out_dir)
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     (out / "velodyne_times").mkdir(exist_ok=True)
@@ -187,11 +245,37 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
     with atomic_path(out / "times.txt") as tmp:
         np.savetxt(tmp, stamps, fmt="%.6f")
     write_calib(out / "calib.txt", Tr)
+    n_imu = n_gnss = 0
+    t_end = float(stamps[-1]) + sensor.period_s
+    if smooth:
+        write_kitti_poses(out / "T_world_seq.txt", T_world_seq[None])
+    if imu is not None:
+        data = simulate_imu(interp, float(stamps[0]), t_end, imu, np.random.default_rng([seed, 2]))
+        write_imu(out, data)
+        n_imu = len(data.stamps_s)
+    if gnss is not None:
+        fixes = simulate_gnss(interp, float(stamps[0]), t_end, gnss,
+                              np.random.default_rng([seed, 3]))
+        write_gnss(out, fixes)
+        n_gnss = int((~fixes.dropped).sum())
     summary = SimSummary(out, sensor, seed, stop - start, stamps, poses, T_world_seq, Tr,
                          n_points / (stop - start), per_scan, world_s, world.n_triangles,
-                         world.n_objects)
+                         world.n_objects, imu, gnss, n_imu, n_gnss)
     _write_readme(out, summary)
     return summary
+
+
+def _smooth(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, start: int, stop: int,
+            world: World, sensor: SensorModel) -> SmoothTrajectory:
+    """The spline through the simulated poses start..stop-1, and through one more on either
+    side when the input has it (so the first and last sweeps are interpolated, not
+    extrapolated; place_on_terrain is per pose, so the written poses are the same)."""
+    lo, hi = max(start - 1, 0), min(stop + 1, len(poses_world_lidar))
+    poses = place_on_terrain(poses_world_lidar[lo:hi], world.terrain, sensor.mount_height_m)
+    stamps = stamps_s[lo:hi]
+    if len(stamps) < 2:
+        raise ValueError("an IMU or GNSS needs at least two poses to move between")
+    return SmoothTrajectory(stamps, poses)
 
 
 @dataclass(frozen=True)
