@@ -43,6 +43,14 @@ def simulate(
     workers: Optional[int] = typer.Option(None, "--workers", min=1,
                                           help="Several POSES: sequences at once (default: "
                                                "the CPU count)."),
+    imu: bool = typer.Option(False, "--imu", help="Also write imu.csv (a BMI088-class IMU) "
+                             "and its truth; the trajectory becomes a smooth spline."),
+    imu_rate: float = typer.Option(200.0, "--imu-rate", min=50.0, max=1000.0,
+                                   help="IMU rate (Hz) with --imu."),
+    gnss: bool = typer.Option(False, "--gnss", help="Also write gnss.csv (noise, dropouts, "
+                              "multipath jumps) and its truth; needs pyproj (lidar-slam[geo])."),
+    gnss_rate: float = typer.Option(1.0, "--gnss-rate", min=0.1, max=20.0,
+                                    help="GNSS rate (Hz) with --gnss."),
 ) -> None:
     """Ray-cast a lidar along a real trajectory through a procedural street world.
 
@@ -51,9 +59,11 @@ def simulate(
     """
     from lidar_slam.sim.jobs import SimulateJob, simulate_many, simulate_one
 
+    rates = (imu_rate if imu else None, gnss_rate if gnss else None)
     if len(poses) == 1:
         typer.echo(simulate_one(SimulateJob(str(poses[0]), str(out), _str(calib), _str(times),
-                                            sensor.value, start, n_scans, seed, overwrite)))
+                                            sensor.value, start, n_scans, seed, overwrite,
+                                            *rates)))
         return
     from lidar_slam.batch import sequence_names
 
@@ -64,7 +74,7 @@ def simulate(
     names = sequence_names(paths)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [SimulateJob(str(p), str((out / name).absolute()), _str(calib and calib.absolute()),
-                        None, sensor.value, start, n_scans, seed, overwrite)
+                        None, sensor.value, start, n_scans, seed, overwrite, *rates)
             for p, name in zip(paths, names)]
     simulate_many(jobs, names, address, workers, on_done=typer.echo)
 

@@ -14,7 +14,8 @@ from lidar_slam.errors import LidarSlamError, RunFailed
 log = logging.getLogger("lidar_slam")
 
 SIMULATE_OUTPUTS = ("velodyne", "velodyne_times", "poses.txt", "times.txt", "calib.txt",
-                    "README.txt")
+                    "README.txt", "imu.csv", "imu_truth.csv", "gnss.csv", "gnss_truth.csv",
+                    "T_world_seq.txt")
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,8 @@ class SimulateJob:
     n_scans: int | None = None
     seed: int = 0
     overwrite: bool = False
+    imu_rate_hz: float | None = None  # None: no IMU
+    gnss_rate_hz: float | None = None  # None: no GNSS
 
 
 def simulate_one(job: SimulateJob, progress: bool = True) -> str:
@@ -45,6 +48,7 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
     )
     from lidar_slam.run.outdir import prepare_out_dir, scan_range
     from lidar_slam.run.progress import progress as make_progress
+    from lidar_slam.sim.inertial import GnssOptions, ImuOptions
     from lidar_slam.sim.sequence import simulate_sequence
 
     poses, out = Path(job.poses), Path(job.out)
@@ -64,15 +68,19 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
         raise RunFailed(f"{times}: {len(stamps)} stamps for {len(poses_lidar)} poses")
     total = scan_range(poses, job.start, job.n_scans, len(poses_lidar), "pose",
                        count=str(len(poses_lidar)))
+    imu = None if job.imu_rate_hz is None else ImuOptions(rate_hz=job.imu_rate_hz)
+    gnss = None if job.gnss_rate_hz is None else GnssOptions(rate_hz=job.gnss_rate_hz)
     bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
     try:
         summary = simulate_sequence(poses_lidar, stamps, out, sensor=job.sensor, seed=job.seed,
                                     start=job.start, n_scans=job.n_scans, Tr_cam_lidar=Tr,
-                                    on_scan=bar.tick)
+                                    on_scan=bar.tick, imu=imu, gnss=gnss)
     finally:
         bar.close()
+    extra = "".join(f", {n} {what}" for n, what in ((summary.n_imu, "IMU samples"),
+                                                       (summary.n_gnss, "GNSS fixes")) if n)
     return (f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
-            f"{summary.seconds_per_scan:.3f} s/scan) into {out}")
+            f"{summary.seconds_per_scan:.3f} s/scan{extra}) into {out}")
 
 
 def simulate_job(job: SimulateJob) -> tuple[bool, str]:
