@@ -173,13 +173,20 @@ def test_simulate_cli_writes_imu_and_gnss_and_overwrite_removes_them(tmp_path):
     base = [sys.executable, "-m", "lidar_slam.cli", "simulate", str(root / "poses.txt"),
             "--calib", str(root / "calib.txt"), "--out", str(out), "--n-scans", "3",
             "--sensor", "vlp16"]
-    proc = subprocess.run([*base, "--imu", "--imu-rate", "100", "--gnss", "--gnss-rate", "10"],
+    bad = subprocess.run([*base, "--imu", "--imu-extrinsic", "0,0,0,90"], capture_output=True,
+                         text=True, timeout=300)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr
+    assert bad.stderr.strip().splitlines()[-1].startswith("lidar-slam: error: --imu-extrinsic")
+    proc = subprocess.run([*base, "--imu", "--imu-rate", "100", "--gnss", "--gnss-rate", "10",
+                           "--imu-extrinsic", "0.1,0,-0.2,0,0,90"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "IMU samples" in proc.stdout and "GNSS fixes" in proc.stdout
     imu = (out / "imu.csv").read_text().splitlines()
     assert imu[0] == "stamp_s,wx,wy,wz,ax,ay,az" and len(imu) == 1 + 31  # 0.3 s at 100 Hz
-    assert (out / "gnss.csv").is_file() and "imu.csv" in (out / "README.txt").read_text()
+    assert (out / "gnss.csv").is_file()
+    assert "T_lidar_imu (row-major 3x4): 0 -1 0 0.1 1 0 0 0 0 0 1 -0.2" in \
+        (out / "README.txt").read_text()
     # Re-simulated without them into the same folder: no stale IMU or GNSS left behind.
     again = subprocess.run([*base, "--overwrite"], capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr

@@ -51,6 +51,15 @@ def simulate(
                               "multipath jumps) and its truth; needs pyproj (lidar-slam[geo])."),
     gnss_rate: float = typer.Option(1.0, "--gnss-rate", min=0.1, max=20.0,
                                     help="GNSS rate (Hz) with --gnss."),
+    imu_extrinsic: Optional[str] = typer.Option(
+        None, "--imu-extrinsic", help="T_lidar_imu as 'x,y,z,roll,pitch,yaw' (m, deg; "
+        "R = Rz(yaw) Ry(pitch) Rx(roll)); default identity."),
+    gnss_datum: Optional[str] = typer.Option(
+        None, "--gnss-datum", help="WGS84 'lat,lon,height' (deg, deg, m) of the world origin; "
+        "default near Karlsruhe (KITTI)."),
+    gnss_lever_arm: Optional[str] = typer.Option(
+        None, "--gnss-lever-arm", help="Antenna position 'x,y,z' (m) in the lidar frame; "
+        "default 0,0,0."),
 ) -> None:
     """Ray-cast a lidar along a real trajectory through a procedural street world.
 
@@ -59,7 +68,9 @@ def simulate(
     """
     from lidar_slam.sim.jobs import SimulateJob, simulate_many, simulate_one
 
-    rates = (imu_rate if imu else None, gnss_rate if gnss else None)
+    rates = (imu_rate if imu else None, gnss_rate if gnss else None,
+             _numbers(imu_extrinsic, 6, "--imu-extrinsic"), _numbers(gnss_datum, 3, "--gnss-datum"),
+             _numbers(gnss_lever_arm, 3, "--gnss-lever-arm"))
     if len(poses) == 1:
         typer.echo(simulate_one(SimulateJob(str(poses[0]), str(out), _str(calib), _str(times),
                                             sensor.value, start, n_scans, seed, overwrite,
@@ -77,6 +88,21 @@ def simulate(
                         None, sensor.value, start, n_scans, seed, overwrite, *rates)
             for p, name in zip(paths, names)]
     simulate_many(jobs, names, address, workers, on_done=typer.echo)
+
+
+def _numbers(text: str | None, n: int, flag: str) -> tuple[float, ...] | None:
+    """n comma-separated finite numbers, or a one-line error naming the flag."""
+    if text is None:
+        return None
+    import math
+
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise fail(f"{flag} {text!r}: expected {n} comma-separated numbers")
+    return values
 
 
 def _str(path: Path | None) -> str | None:

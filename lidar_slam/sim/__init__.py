@@ -1,8 +1,9 @@
 """A spinning-lidar simulator: a procedural street world along a trajectory, ray cast with open3d.
 
 Modules: sensor (lidar models, poses between stamps), world (the street world), sequence (sweeps
-and KITTI-layout sequences, KITTI ground truth), jobs (`lidar-slam simulate`: one sequence per
-pose file, several on the Ray fleet of `batch`).
+and KITTI-layout sequences, KITTI ground truth), inertial (a smooth trajectory, and the IMU and
+GNSS measured along it), jobs (`lidar-slam simulate`: one sequence per pose file, several on the
+Ray fleet of `batch`).
 
 Conventions (also written into every sequence's README):
 - Input poses are T_world_lidar (K, 4, 4) at stamps_s (K,). The world is built along the stretch
@@ -12,7 +13,9 @@ Conventions (also written into every sequence's README):
   ones written out.
 - A scan's stamp is the START of its sweep. Column c of a sweep is captured at stamp + c * period /
   n_azimuth from the pose interpolated at that instant (slerp/lerp between the simulated poses,
-  extrapolated past the last one), so scans carry true motion distortion. The head starts facing
+  extrapolated past the last one), so scans carry true motion distortion. With an IMU or GNSS,
+  the poses between stamps come from inertial.SmoothTrajectory instead (a cubic spline and a
+  RotationSpline through the same poses), for the points and the IMU/GNSS alike. The head starts facing
   backwards (azimuth 180 deg) and turns clockwise seen from above, like a Velodyne.
 - Points are in the sensor frame of their own capture instant (raw, not deskewed); per-point times
   are seconds relative to the stamp, in [0, period).

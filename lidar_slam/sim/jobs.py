@@ -33,6 +33,9 @@ class SimulateJob:
     overwrite: bool = False
     imu_rate_hz: float | None = None  # None: no IMU
     gnss_rate_hz: float | None = None  # None: no GNSS
+    imu_extrinsic: tuple[float, ...] | None = None  # x, y, z (m), roll, pitch, yaw (deg)
+    gnss_datum: tuple[float, ...] | None = None  # lat, lon (deg), height (m)
+    gnss_lever_arm: tuple[float, ...] | None = None  # m, lidar frame
 
 
 def simulate_one(job: SimulateJob, progress: bool = True) -> str:
@@ -68,8 +71,13 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
         raise RunFailed(f"{times}: {len(stamps)} stamps for {len(poses_lidar)} poses")
     total = scan_range(poses, job.start, job.n_scans, len(poses_lidar), "pose",
                        count=str(len(poses_lidar)))
-    imu = None if job.imu_rate_hz is None else ImuOptions(rate_hz=job.imu_rate_hz)
-    gnss = None if job.gnss_rate_hz is None else GnssOptions(rate_hz=job.gnss_rate_hz)
+    imu = gnss = None
+    if job.imu_rate_hz is not None:
+        imu = ImuOptions(rate_hz=job.imu_rate_hz, T_lidar_imu=_extrinsic(job.imu_extrinsic))
+    if job.gnss_rate_hz is not None:
+        gnss = GnssOptions(rate_hz=job.gnss_rate_hz,
+                           datum=job.gnss_datum or GnssOptions().datum,
+                           lever_arm_m=job.gnss_lever_arm or GnssOptions().lever_arm_m)
     bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
     try:
         summary = simulate_sequence(poses_lidar, stamps, out, sensor=job.sensor, seed=job.seed,
@@ -81,6 +89,19 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
                                                        (summary.n_gnss, "GNSS fixes")) if n)
     return (f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
             f"{summary.seconds_per_scan:.3f} s/scan{extra}) into {out}")
+
+
+def _extrinsic(xyz_rpy_deg: tuple[float, ...] | None):
+    """4x4 T_lidar_imu from x, y, z (m), roll, pitch, yaw (deg); identity for None."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    if xyz_rpy_deg is not None:
+        roll, pitch, yaw = xyz_rpy_deg[3:]
+        T[:3, :3] = Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
+        T[:3, 3] = xyz_rpy_deg[:3]
+    return T
 
 
 def simulate_job(job: SimulateJob) -> tuple[bool, str]:

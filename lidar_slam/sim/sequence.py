@@ -151,7 +151,7 @@ def _inertial_readme(summary: SimSummary) -> str:
             "end of the\n  last sweep; stamp_s,wx,wy,wz (rad/s),ax,ay,az (m/s^2, specific "
             "force), IMU frame.\n"
             "  T_lidar_imu (row-major 3x4): "
-            f"{' '.join(f'{v:g}' for v in np.asarray(o.T_lidar_imu)[:3].ravel())}"
+            f"{' '.join(f'{v:.9g}' for v in np.round(o.T_lidar_imu, 9)[:3].ravel() + 0.0)}"
             "\n  Noise (continuous time): gyro "
             f"{nz.gyro_noise_density:.3g} rad/s/sqrt(Hz), accel {nz.accel_noise_density:.3g} "
             f"m/s^2/sqrt(Hz),\n  bias random walk gyro {nz.gyro_bias_random_walk:.3g} "
