@@ -15,8 +15,9 @@ Conventions (also written into every sequence's README):
   n_azimuth from the pose interpolated at that instant (slerp/lerp between the simulated poses,
   extrapolated past the last one), so scans carry true motion distortion. With an IMU or GNSS,
   the poses between stamps come from inertial.SmoothTrajectory instead (a cubic spline and a
-  RotationSpline through the same poses), for the points and the IMU/GNSS alike. The head starts facing
-  backwards (azimuth 180 deg) and turns clockwise seen from above, like a Velodyne.
+  RotationSpline through the same poses), for the points and the IMU/GNSS alike. The head
+  starts facing backwards (azimuth 180 deg) and turns clockwise seen from above, like a
+  Velodyne.
 - Points are in the sensor frame of their own capture instant (raw, not deskewed); per-point times
   are seconds relative to the stamp, in [0, period).
 - Output is a KITTI-layout folder: velodyne/NNNNNN.bin (float32 x, y, z, intensity),
