@@ -35,6 +35,8 @@ class RunResult:
     odom_poses: list[np.ndarray] = field(default_factory=list)  # T_world_scan before loops
     frame_kf: list[int] = field(default_factory=list)  # keyframe each frame hangs off
     kf_poses: dict[int, np.ndarray] = field(default_factory=dict)  # final T_world_kf
+    # keyframe id -> 6x6 marginal covariance of kf_poses (rotation first, keyframe's frame)
+    kf_covariances: dict[int, np.ndarray] = field(default_factory=dict)
     loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
     skipped_empty: int = 0
     skipped_small: int = 0  # scans with fewer than data.min_points points in range
@@ -182,6 +184,7 @@ class Pipeline:
             for kf_id in range(len(self.backend), len(r.store)):  # stopped mid-keyframe
                 self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
             r.kf_poses = self.backend.finish()
+            r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s
             r.loop_backend, r.backend_init = self.backend.loop_status, self.backend.final_init
             r.seconds["backend"] = sum(self.backend.seconds.values())
@@ -192,7 +195,10 @@ class Pipeline:
             r.seconds["loop_worker_urgent"] = self.loops.urgent_s
             r.seconds["loops"] += time.perf_counter() - t0
         else:
+            from lidar_slam.backend.slam_backend import chain_covariances
+
             r.kf_poses = self.current_kf_poses()
+            r.kf_covariances = chain_covariances(self.cfg.backend, r.kf_poses)
         return r
 
     def close(self) -> None:

@@ -1,8 +1,9 @@
 """Rerun visualisation: the only module that imports rerun (imported only with --viz / --rrd).
 
 Logged: the current scan (world frame), the growing map (keyframe clouds), the odometry trajectory,
-keyframes, accepted loop edges, and at the end the optimised trajectory and map. Time is set per
-scan on the `frame` (input index) and `stamp` (seconds) timelines.
+keyframes, accepted loop edges, and at the end the optimised trajectory and map and the keyframe
+position covariances (3-sigma ellipsoids). Time is set per scan on the `frame` (input index) and
+`stamp` (seconds) timelines.
 """
 
 from __future__ import annotations
@@ -15,9 +16,10 @@ import rerun as rr
 
 from lidar_slam.errors import InputError
 from lidar_slam.frontend.downsample import voxel_downsample
-from lidar_slam.geometry import transform_points
+from lidar_slam.geometry import quat_from_matrix, transform_points
 
 SCAN_VOXEL_M = 0.3
+COVARIANCE_SIGMAS = 3.0  # keyframe position ellipsoids are drawn at 3 sigma
 log = logging.getLogger(__name__)
 
 
@@ -75,6 +77,26 @@ class RerunViz:
                   for row in accepted]
         self.rec.log("world/loops", rr.LineStrips3D(strips, colors=[0, 220, 0], radii=0.1))
 
+    def _log_covariances(self, covariances: dict, kf_poses: dict) -> None:
+        """The position part of every keyframe's covariance as its COVARIANCE_SIGMAS ellipsoid,
+        turned from the keyframe's frame into the world's."""
+        keys = [k for k in sorted(covariances) if k in kf_poses]
+        if not keys:
+            return
+        centers, half_sizes, rotations = [], [], []
+        for k in keys:
+            R = kf_poses[k][:3, :3]
+            values, axes = np.linalg.eigh(R @ covariances[k][3:, 3:] @ R.T)
+            if np.linalg.det(axes) < 0:
+                axes[:, 0] = -axes[:, 0]
+            centers.append(kf_poses[k][:3, 3])
+            half_sizes.append(COVARIANCE_SIGMAS * np.sqrt(np.clip(values, 0.0, None)))
+            rotations.append(axes)
+        self.rec.log("world/covariances",
+                     rr.Ellipsoids3D(centers=centers, half_sizes=half_sizes,
+                                     quaternions=quat_from_matrix(np.stack(rotations)),
+                                     colors=[255, 120, 0]), static=True)
+
     def finish(self, result, map_path: Path) -> None:
         """Log the final (optimised) trajectory and the written map, then flush the recording."""
         if result.odom_poses:
@@ -90,6 +112,8 @@ class RerunViz:
             self.rec.log("world/optimised_map", rr.Points3D(cloud, radii=0.04), static=True)
             self._log_loops([row for row in result.loops if row.accepted],
                             {k: anchor @ T for k, T in result.kf_poses.items()})
+            self._log_covariances(result.kf_covariances,
+                                  {k: anchor @ T for k, T in result.kf_poses.items()})
         try:
             self.rec.flush()
             self.rec.disconnect()

@@ -52,3 +52,31 @@ def test_rerun_not_imported_without_viz_flags(kitti16, tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_rrd_recording_shows_keyframe_covariances_as_ellipsoids(tmp_path):
+    from pathlib import Path
+
+    from rerun.chunk import RrdReader
+
+    from lidar_slam.run.outputs import read_covariances
+
+    sample = Path(__file__).resolve().parents[1] / "sample_scans"
+    rrd, run = tmp_path / "out.rrd", tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(sample), "--out",
+                           str(run), "--rrd", str(rrd), "--n-scans", "30"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    store = RrdReader(str(rrd)).stream().collect()
+    chunk = [c for c in store.stream() if c.entity_path == "/world/covariances"][0]
+    batch = chunk.to_record_batch()
+    centers = np.array(batch.column("Ellipsoids3D:centers").to_pylist()[0])
+    half_sizes = np.array(batch.column("Ellipsoids3D:half_sizes").to_pylist()[0])
+    covs = read_covariances(run / "covariances.csv")
+    poses = np.loadtxt(run / "poses_kitti.txt").reshape(-1, 3, 4)
+    frames = sorted(covs)
+    assert len(centers) == len(frames)
+    np.testing.assert_allclose(centers[1:], poses[frames[1:], :, 3], atol=1e-4)
+    # 3 sigma: the largest half-axis is 3 x the square root of the largest eigenvalue.
+    last = np.linalg.eigvalsh(covs[frames[-1]][3:, 3:]).max()
+    np.testing.assert_allclose(half_sizes[-1].max(), 3.0 * np.sqrt(last), rtol=1e-4)

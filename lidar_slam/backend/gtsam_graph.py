@@ -135,6 +135,19 @@ def solve(dims: Dims, priors: Sequence[PriorFactor], betweens: Sequence[BetweenF
     return Problem(dims, priors, betweens).lm(initial, max_iterations, relative_error_tol)
 
 
+def marginal_covariances(dims: Dims, priors: Sequence[PriorFactor],
+                         betweens: Sequence[BetweenFactor], poses: Mapping[int, np.ndarray]
+                         ) -> dict[int, np.ndarray]:
+    """Marginal covariance of every node at the poses (gtsam Marginals, Cholesky), in gtsam's
+    tangent order (Pose3: rotation first, rad and m) and in the node's own frame: the true pose
+    is T_world_node @ Exp(xi), xi ~ N(0, cov). Robust edges enter with their kernel's weight at
+    the poses, as in the solve's last linearisation."""
+    graph, values = _build(dims, priors, betweens, poses)
+    marginals = gtsam.Marginals(graph, values)
+    return {int(k): np.asarray(marginals.marginalCovariance(k), dtype=np.float64)
+            for k in values.keys()}
+
+
 def inlier_thresholds(dims: Dims, n: int) -> np.ndarray:
     """GNC's inlier cost threshold for n between factors: 0.5 * chi2inv(INLIER_PROBABILITY, dof)."""
     return np.full(n, 0.5 * CHI2_99[3 if dims == 2 else 6])

@@ -257,6 +257,21 @@ class PoseGraph:
                  self.summary.seconds)
         return self.estimate
 
+    def covariances(self, robust: Robust = "none", huber_k: float = 1.345
+                    ) -> dict[int, np.ndarray]:
+        """Marginal covariance of every node at the current estimate (gtsam tangent order, in
+        the node's frame; see gtsam_graph.marginal_covariances), from the priors, the odometry
+        and the loops the last solve kept (with the loop kernel of `robust`): a loop it
+        rejected says nothing about where the nodes are."""
+        self._check_keys()
+        from lidar_slam.backend import gtsam_graph
+
+        edges = self._edges_for(robust, huber_k)
+        keep = self.summary.inlier if self.summary is not None else None
+        if keep is not None and len(keep) == len(edges):
+            edges = [e for e, k in zip(edges, keep, strict=True) if k or not e.is_loop]
+        return gtsam_graph.marginal_covariances(self.dims, self.priors, edges, self._estimate)
+
     def _known_chain(self, edges: list[BetweenFactor], known: np.ndarray
                      ) -> dict[int, np.ndarray]:
         """Poses from the priors chained along the known-inlier edges (breadth first, in key

@@ -59,6 +59,9 @@ class Backend:
         self.loop_status: dict[tuple[int, int], str] = {}
         self.seconds = {"update": 0.0, "final": 0.0}  # live (window) updates, final solve
         self.final_init = ""  # the start the final solve kept: live / chordal (GNC: odometry)
+        # keyframe id -> 6x6 marginal covariance of the final solve (rotation first, rad and m,
+        # in the keyframe's frame: T_world_kf_true = T_world_kf @ Exp(xi)), set by finish()
+        self.covariances: dict[int, np.ndarray] = {}
 
     def __len__(self) -> int:
         return self._n
@@ -169,6 +172,7 @@ class Backend:
         for key in range(self._n):
             self.graph.set_initial(key, self._live[key])
         if not self.constraints:
+            self._covariances()
             return self.graph.estimate  # a chain: the live estimate is exact
         t0 = time.perf_counter()
         poses = self.graph.solve(self.cfg.robust, "auto" if self.cfg.global_init else "file",
@@ -183,4 +187,28 @@ class Backend:
         log.info("final solve (%s from %s): %d of %d loops rejected, %.2f s", summary.robust,
                  summary.init, sum(s == "rejected" for s in self.loop_status.values()),
                  len(self.loop_status), self.seconds["final"])
+        self._covariances()
         return poses
+
+    def _covariances(self) -> None:
+        t0 = time.perf_counter()
+        self.covariances = self.graph.covariances(self.cfg.robust, self.cfg.huber_k)
+        self.seconds["covariances"] = time.perf_counter() - t0
+
+
+def chain_covariances(cfg: BackendConfig, T_world_kf: dict[int, np.ndarray]
+                      ) -> dict[int, np.ndarray]:
+    """Marginal covariances (as Backend.covariances) of keyframes joined by odometry alone, as
+    in a run without loops: the first keyframe's prior and one odometry edge per keyframe."""
+    if not T_world_kf:
+        return {}
+    graph = PoseGraph()
+    keys = sorted(T_world_kf)
+    graph.add_prior(keys[0], T_world_kf[keys[0]], cfg.prior_rot_sigma_deg, cfg.prior_trans_sigma_m)
+    for a, b in zip(keys[:-1], keys[1:], strict=True):
+        graph.add_odometry(a, b, relative(T_world_kf[a], T_world_kf[b]),
+                           rot_sigma_deg=cfg.odom_rot_sigma_deg,
+                           trans_sigma_m=cfg.odom_trans_sigma_m)
+    for k in keys:
+        graph.set_initial(k, T_world_kf[k])
+    return graph.covariances()

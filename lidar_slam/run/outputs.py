@@ -58,6 +58,37 @@ def write_map_manifest(store: KeyframeStore, T_map_kf: dict[int, np.ndarray],
     store.flush(np.stack([T_map_kf[k] for k in range(len(store))]), rows)
 
 
+TANGENT = ("rx", "ry", "rz", "tx", "ty", "tz")  # gtsam Pose3 order: rotation first (rad, m)
+COVARIANCE_COLUMNS = tuple(f"{TANGENT[i]}_{TANGENT[j]}" for i in range(6) for j in range(i, 6))
+
+
+def write_covariances(path: Path, result: RunResult) -> None:
+    """covariances.csv: per keyframe its input frame, its id and the 21 upper-triangle values
+    (row by row) of the 6x6 marginal covariance of the final solve (rotation first, rad^2 and
+    m^2, in the keyframe's frame: the true pose is T_world_kf @ Exp(xi), xi ~ N(0, cov))."""
+    table = result.store.table()
+    iu = np.triu_indices(6)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        rows = csv.writer(fh)
+        rows.writerow(["frame", "keyframe", *COVARIANCE_COLUMNS])
+        for kf_id, frame in zip(table["id"], table["frame_index"], strict=True):
+            cov = result.kf_covariances.get(int(kf_id))
+            if cov is not None:
+                rows.writerow([int(frame), int(kf_id), *(f"{v:.9e}" for v in cov[iu])])
+
+
+def read_covariances(path: Path) -> dict[int, np.ndarray]:
+    """covariances.csv back as {frame: 6x6 covariance} (see write_covariances)."""
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    out = {}
+    iu = np.triu_indices(6)
+    for row in data:
+        cov = np.zeros((6, 6))
+        cov[iu] = row[2:]
+        out[int(row[0])] = cov + np.triu(cov, 1).T
+    return out
+
+
 class OdometryStream:
     """odometry_kitti.txt written while the run goes, one line per frame (line-buffered: every
     line reaches the file as one write), so even a killed run (SIGKILL, out of memory) keeps its
@@ -102,6 +133,8 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary["map_points"] = write_map(out_dir / "map.ply", result.store, T_map_kf,
                                           cfg.map.voxel_size_m)
         write_map_manifest(result.store, T_map_kf, cfg)
+        if result.kf_covariances:
+            write_covariances(out_dir / "covariances.csv", result)
         summary["path_length_m"] = metrics.path_length_m(poses)
         if ground_truth is not None:
             gt = ground_truth[np.asarray(result.indices)]

@@ -1,0 +1,121 @@
+"""Pose covariances (covariances.csv): gtsam marginals of the final solve, and whether they are
+consistent with the true error on simulated runs (NEES).
+
+NEES here: for every keyframe but the first (the prior's node, which anchors the covariances),
+e = R_est^T (p_true - p_est), the position error in the keyframe's frame, after aligning both
+trajectories at frame 0 (= keyframe 0) by SE(3); NEES = e^T inv(cov_t) e with cov_t the
+translation block of the keyframe's covariance. For consistent covariances its mean is 3.
+"""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_slam.backend.pose_graph import PoseGraph
+from lidar_slam.backend.slam_backend import chain_covariances
+from lidar_slam.config import load_config
+from lidar_slam.geometry import inverse
+from lidar_slam.io.sources import open_source
+from lidar_slam.io.trajectory import read_kitti_poses
+from lidar_slam.run.outputs import COVARIANCE_COLUMNS, read_covariances
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_scans"
+
+
+def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3] = x
+    return T
+
+
+def _run(data: Path, out: Path, *args: str) -> Path:
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(data), "--out",
+                           str(out), *args], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def _nees(run: Path, data: Path) -> np.ndarray:
+    """NEES of every keyframe position but the first (see the module doc)."""
+    poses = read_kitti_poses(run / "poses_kitti.txt")
+    truth = open_source(data).ground_truth[: len(poses)]
+    truth = inverse(truth[0]) @ truth
+    covs = read_covariances(run / "covariances.csv")
+    out = []
+    for frame, cov in sorted(covs.items())[1:]:
+        T = poses[frame]
+        e = T[:3, :3].T @ (truth[frame][:3, 3] - T[:3, 3])
+        out.append(float(e @ np.linalg.solve(cov[3:, 3:], e)))
+    return np.array(out)
+
+
+def test_a_chain_keyframe_is_as_sure_as_its_prior_and_less_sure_with_every_edge():
+    cfg = load_config().backend
+    covs = chain_covariances(cfg, {k: _pose(2.0 * k, 0.05 * k) for k in range(6)})
+    assert np.allclose(np.diag(covs[0]), [np.radians(cfg.prior_rot_sigma_deg) ** 2] * 3
+                       + [cfg.prior_trans_sigma_m ** 2] * 3)
+    for k in range(1, 6):
+        assert np.all(np.linalg.eigvalsh(covs[k] - covs[k - 1]) > -1e-15), k  # grows
+        assert np.allclose(covs[k], covs[k].T)
+    # One odometry edge adds its own covariance, rotation first, in the keyframe's frame.
+    odom = np.diag([np.radians(cfg.odom_rot_sigma_deg) ** 2] * 3
+                   + [cfg.odom_trans_sigma_m ** 2] * 3)
+    assert np.allclose(np.diag(covs[1] - covs[0]), np.diag(odom), rtol=1e-2)
+
+
+def test_a_kept_loop_shrinks_the_covariance_and_a_rejected_one_does_not():
+    poses = {k: _pose(2.0 * k) for k in range(10)}
+    graph = PoseGraph()
+    graph.add_prior(0, poses[0], 1e-3, 1e-3)
+    for k in range(1, 10):
+        graph.add_odometry(k - 1, k, inverse(poses[k - 1]) @ poses[k], rot_sigma_deg=0.1,
+                           trans_sigma_m=0.05)
+    for k, T in poses.items():
+        graph.set_initial(k, T)
+    chain = graph.covariances()
+    graph.add_loop(0, 9, inverse(poses[0]) @ poses[9], np.eye(6) * 1e4, robust_k=1.345)
+    graph.solve("huber", "file")
+    closed = graph.covariances("huber")
+    assert np.trace(closed[9][3:, 3:]) < 0.1 * np.trace(chain[9][3:, 3:])
+    # A wrong loop (20 m off) that GNC rejects leaves the chain's covariances.
+    wrong = PoseGraph()
+    wrong.priors, wrong.edges = graph.priors, graph.edges[:-1]
+    wrong.add_loop(0, 9, _pose(38.0), np.eye(6) * 1e4)
+    for k, T in poses.items():
+        wrong.set_initial(k, T)
+    wrong.solve("gnc", "file")
+    assert not wrong.summary.inlier[-1]
+    assert np.allclose(wrong.covariances("gnc")[9], chain[9], rtol=1e-6)
+
+
+def test_covariances_csv_has_one_row_per_keyframe_with_21_values(tmp_path):
+    run = _run(SAMPLE, tmp_path / "run", "--n-scans", "30")
+    header = (run / "covariances.csv").read_text().splitlines()[0].split(",")
+    assert header == ["frame", "keyframe", *COVARIANCE_COLUMNS] and len(COVARIANCE_COLUMNS) == 21
+    covs = read_covariances(run / "covariances.csv")
+    manifest_kf = np.loadtxt(run / "covariances.csv", delimiter=",", skiprows=1)[:, 1]
+    assert list(manifest_kf) == list(range(len(covs))) and 0 in covs
+    for cov in covs.values():
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+@pytest.mark.parametrize("args", [(), ("--no-loops",)], ids=["loops", "no-loops"])
+def test_keyframe_position_nees_is_within_a_factor_3_of_3_on_sample_scans(tmp_path, args):
+    """Measured: mean NEES 2.88 with its 6 loops, 1.19 without (50 keyframes)."""
+    nees = _nees(_run(SAMPLE, tmp_path / "run", *args), SAMPLE)
+    assert 1.0 <= nees.mean() <= 9.0, (nees.mean(), np.round(nees, 2))
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "underconfident on HDL-64 sims: mean NEES 0.18 on simulated 07 frames 0-179 (46 keyframes; "
+    "0.78 on 05 frames 0-299): the fixed odometry sigmas (5 cm / 0.1 deg per keyframe) are 2-4x "
+    "the measured per-keyframe odometry error there (RMS 2.1/2.8/0.5 cm, 0.027/0.019/0.059 deg "
+    "per axis; on sample_scans' VLP-16 5.4/4.1/1.5 cm, 0.10/0.11/0.33 deg)"))
+def test_keyframe_position_nees_is_within_a_factor_3_of_3_on_a_simulated_kitti_slice(sim_map):
+    nees = _nees(sim_map.run, sim_map.seq)
+    assert 1.0 <= nees.mean() <= 9.0, (nees.mean(), np.round(nees, 2))
