@@ -52,6 +52,7 @@ if sys.version_info >= (3, 14):
     from compression.zstd import ZstdDecompressor, ZstdError
 else:  # rosbags depends on the backport below 3.14
     from backports.zstd import ZstdDecompressor, ZstdError
+from lidar_slam.io.inertial import GnssFixes, ImuSamples, gnss_from_rows, imu_from_rows
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import INTENSITY_FIELDS, TIME_FIELDS
 from lidar_slam.types import Scan
@@ -59,6 +60,8 @@ from lidar_slam.types import Scan
 log = logging.getLogger(__name__)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+IMU = "sensor_msgs/msg/Imu"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 # PointField datatype -> NumPy type code (sensor_msgs/PointField INT8..FLOAT64).
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -759,3 +762,80 @@ class RosbagSource:
                   self.topic, position, len(cloud.points), total, cloud.n_dropped)
         return Scan(index, header_stamp_ns(msg) * 1e-9, cloud.points, cloud.point_times,
                     cloud.intensity, f"{self.path}:{self.topic}[{position}]")
+
+
+def _pick_typed_topic(path: Path, topics: dict[str, tuple[str, int]], topic: str | None,
+                      msgtype: str, flag: str) -> str | None:
+    """The topic of msgtype to read: the one named, else the only one (None when there is
+    none); several without a choice is refused, as PointCloud2 topics are."""
+    short = msgtype.replace("/msg/", "/")
+    typed = sorted(t for t, (typ, _) in topics.items() if typ == msgtype)
+    if topic is not None:
+        if topic not in topics:
+            raise InputError(path, f"no topic {topic} ({short} topics: "
+                                   f"{', '.join(typed) or 'none'})")
+        if topics[topic][0] != msgtype:
+            raise InputError(path, f"topic {topic} is {topics[topic][0]}, not {short}")
+        return topic
+    if len(typed) > 1:
+        off = flag.replace("-topic", "").replace("--", "--no-")
+        raise InputError(path, f"{len(typed)} {short} topics ({', '.join(typed)}): pass {flag} "
+                               f"to choose one (or {off})")
+    return typed[0] if typed else None
+
+
+def _typed_messages(path: Path, topic: str | None, msgtype: str, flag: str
+                    ) -> tuple[str | None, list[Any]]:
+    """The picked topic and its deserialized messages (an empty list when there is no topic)."""
+    with open_bag(path) as bag:
+        picked = _pick_typed_topic(path, bag.topics(), topic, msgtype, flag)
+        if picked is None:
+            return None, []
+        messages = []
+        for position, deserialize in enumerate(_topic_messages(bag, picked)):
+            try:
+                messages.append(deserialize())
+            except (*_BAG_ERRORS, *_LEAKS) as exc:
+                raise InputError(path, f"{picked} message {position} cannot be deserialized "
+                                       f"({_problem(exc)})") from exc
+    return picked, messages
+
+
+def read_imu_topic(path: Path, topic: str | None = None) -> tuple[ImuSamples | None, str | None]:
+    """The sensor_msgs/Imu samples of a bag (header stamps), cleaned as imu.csv; or None and why
+    not (no Imu topic)."""
+    picked, messages = _typed_messages(path, topic, IMU, "--imu-topic")
+    if picked is None:
+        return None, "no sensor_msgs/Imu topic in the bag"
+    rows = np.array([(header_stamp_ns(m) * 1e-9, m.angular_velocity.x, m.angular_velocity.y,
+                      m.angular_velocity.z, m.linear_acceleration.x, m.linear_acceleration.y,
+                      m.linear_acceleration.z) for m in messages], dtype=np.float64)
+    return imu_from_rows(f"{path}:{picked}", rows.reshape(-1, 7)), None
+
+
+def read_gnss_topic(path: Path, topic: str | None = None
+                    ) -> tuple[GnssFixes | None, str | None]:
+    """The sensor_msgs/NavSatFix fixes of a bag (header stamps), cleaned as gnss.csv; fixes
+    with status NO_FIX (< 0) or an unknown covariance (type 0) are dropped and counted. sigma_h
+    is the larger of the east and north sigmas of the covariance's diagonal."""
+    picked, messages = _typed_messages(path, topic, NAVSATFIX, "--gnss-topic")
+    if picked is None:
+        return None, "no sensor_msgs/NavSatFix topic in the bag"
+    rows = np.full((len(messages), 6), np.nan)
+    no_fix = unknown_cov = 0
+    for i, m in enumerate(messages):
+        cov = np.asarray(m.position_covariance, dtype=np.float64)
+        if m.status.status < 0:
+            no_fix += 1
+            continue
+        if m.position_covariance_type == 0:
+            unknown_cov += 1
+            continue
+        with np.errstate(invalid="ignore"):
+            rows[i] = (header_stamp_ns(m) * 1e-9, m.latitude, m.longitude, m.altitude,
+                       np.sqrt(max(cov[0], cov[4])), np.sqrt(cov[8]))
+    if no_fix or unknown_cov:
+        log.warning("%s:%s: %d fixes without a fix (status < 0) and %d with an unknown "
+                    "covariance are not used", path, picked, no_fix, unknown_cov)
+    return gnss_from_rows(f"{path}:{picked}", rows,
+                          {"no_fix": no_fix, "unknown_covariance": unknown_cov}), None
