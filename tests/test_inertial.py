@@ -3,7 +3,11 @@ and NavSatFix bag topics, the imu:/gnss: config sections, and every kind of bad 
 
 from __future__ import annotations
 
+import json
 import logging
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +21,7 @@ from lidar_slam.errors import ConfigError, InputError
 from lidar_slam.io.inertial import load_inertial, read_gnss_csv, read_imu_csv
 from lidar_slam.io.rosbag import read_gnss_topic, read_imu_topic
 
+REPO = Path(__file__).resolve().parents[1]
 IMU_HEADER = "stamp_s,wx,wy,wz,ax,ay,az\n"
 GNSS_HEADER = "stamp_s,lat_deg,lon_deg,alt_m,sigma_h_m,sigma_v_m\n"
 ROS2 = get_typestore(Stores.ROS2_HUMBLE)
@@ -237,6 +242,51 @@ def test_bag_topics_of_imu_and_gnss_are_chosen_or_refused_by_name(tmp_path):
                                          "sensor_msgs/NavSatFix"):
         read_gnss_topic(path, "/imu_a")
     assert read_gnss_topic(path) == (None, "no sensor_msgs/NavSatFix topic in the bag")
+
+
+def _sample_copy(tmp_path: Path) -> Path:
+    data = tmp_path / "seq"
+    shutil.copytree(REPO / "sample_scans", data)
+    return data
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_run_reports_the_imu_and_gnss_it_read_in_summary_json(tmp_path):
+    data = _sample_copy(tmp_path)
+    stamps = np.loadtxt(data / "times.txt")
+    n = int((stamps[-1] - stamps[0]) * 200) + 1
+    _write(data / "imu.csv", IMU_HEADER, _imu_rows(n, t0=stamps[0]).tolist())
+    _write(data / "gnss.csv", GNSS_HEADER, _gnss_rows(int(stamps[-1]) + 1, stamps[0]).tolist())
+    proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["imu"]["used"] and summary["imu"]["samples"] == n
+    assert summary["imu"]["rate_hz"] == pytest.approx(200, rel=1e-3)
+    assert summary["gnss"]["used"] and summary["gnss"]["source"] == str(data / "gnss.csv")
+    proc = _run(data, "--out", tmp_path / "o2", "--n-scans", "3", "--no-loops", "--no-imu",
+                "--no-gnss", "--imu-topic", "/imu")
+    assert proc.returncode == 0, proc.stderr
+    assert "--imu-topic /imu ignored" in proc.stderr
+    summary = json.loads((tmp_path / "o2" / "summary.json").read_text())
+    assert summary["imu"] == {"used": False, "reason": "off (--no-imu or imu.enabled: false)"}
+    assert not summary["gnss"]["used"]
+
+
+def test_run_with_an_unusable_imu_file_is_one_line_and_exit_2(tmp_path):
+    data = _sample_copy(tmp_path)
+    (data / "imu.csv").write_text("time,gx,gy,gz,ax,ay,az\n0,0,0,0,0,0,9.8\n")
+    proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(data / "imu.csv") in lines[0] and "header" in lines[0], lines
+    assert not (tmp_path / "o").exists()
+    # --no-imu reads around it
+    assert _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops",
+                "--no-imu").returncode == 0
 
 
 def test_imu_warnings_name_the_file(tmp_path, caplog):
