@@ -295,3 +295,31 @@ def test_imu_warnings_name_the_file(tmp_path, caplog):
     rows[3][0] = rows[2][0]
     read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
     assert str(tmp_path / "imu.csv") in caplog.text
+
+
+def _cloud(stamp_ns: int, seed: int):
+    """A PointCloud2 of 3000 float32 x, y, z points on the walls of a 40 m box."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-20, 20, (3000, 3)).astype(np.float32)
+    pts[np.arange(3000), rng.integers(0, 2, 3000)] = rng.choice([-20, 20], 3000)
+    field = ROS2.types["sensor_msgs/msg/PointField"]
+    fields = [field(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
+    return ROS2.types["sensor_msgs/msg/PointCloud2"](
+        header=_header(stamp_ns), height=1, width=3000, fields=fields, is_bigendian=False,
+        point_step=12, row_step=36000, data=np.frombuffer(pts.tobytes(), np.uint8),
+        is_dense=True)
+
+
+def test_run_on_a_bag_names_the_imu_topic_it_read(tmp_path):
+    t0 = 1_700_000_000 * 10**9
+    imu = [_imu_msg(t0 + k * 5_000_000, 0.0) for k in range(80)]
+    path = _bag(tmp_path / "b", {
+        "/points": ("sensor_msgs/msg/PointCloud2", [_cloud(t0 + k * 10**8, 0) for k in range(3)]),
+        "/imu_a": ("sensor_msgs/msg/Imu", imu), "/imu_b": ("sensor_msgs/msg/Imu", imu)})
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 2 and "pass --imu-topic" in proc.stderr, proc.stderr
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--imu-topic", "/imu_b")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["imu"]["source"] == f"{path}:/imu_b" and summary["imu"]["samples"] == 80
+    assert summary["gnss"] == {"used": False, "reason": "no sensor_msgs/NavSatFix topic in the bag"}
