@@ -323,3 +323,34 @@ def test_run_on_a_bag_names_the_imu_topic_it_read(tmp_path):
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["imu"]["source"] == f"{path}:/imu_b" and summary["imu"]["samples"] == 80
     assert summary["gnss"] == {"used": False, "reason": "no sensor_msgs/NavSatFix topic in the bag"}
+
+
+def test_a_bag_imu_on_another_clock_is_refused_when_named_and_left_out_when_picked(tmp_path):
+    t0 = 1_700_000_000 * 10**9
+    imu = [_imu_msg(k * 5_000_000, 0.0) for k in range(1, 80)]  # stamps from boot, not epoch
+    path = _bag(tmp_path / "b", {
+        "/points": ("sensor_msgs/msg/PointCloud2", [_cloud(t0 + k * 10**8, 0) for k in range(3)]),
+        "/imu": ("sensor_msgs/msg/Imu", imu)})
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--imu-topic", "/imu")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert f"{path}:/imu: IMU stamps 0.005..0.395 s do not overlap the scans'" in line, line
+    assert not (tmp_path / "o").exists()
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    assert f"{path}:/imu: not used: IMU stamps 0.005..0.395 s" in proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert not summary["imu"]["used"] and "do not overlap" in summary["imu"]["reason"]
+
+
+def test_the_ouster_bags_own_imu_on_the_sensor_clock_does_not_stop_a_lidar_run(rosbags_dir,
+                                                                              tmp_path):
+    """The shared Ouster recording stamps its clouds with the epoch and its sensor_msgs/Imu
+    with the sensor's clock (~1622 s): picked by itself, that IMU is left out with a warning."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((rosbags_dir / "ouster_os1_64_points_ros1_profile.mcap").read_bytes()[:2**21])
+    proc = _run(cut, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    assert f"{cut}:/os1_cloud_node/imu: not used: IMU stamps 1622" in proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["imu"]["used"] is False and summary["frames"] == 1

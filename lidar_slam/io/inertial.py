@@ -203,15 +203,26 @@ def stream_info(stamp_s: np.ndarray, source: str, dropped: dict[str, int],
             "time_offset_s": time_offset_s, "dropped": dict(dropped)}
 
 
+def overlap_problem(stamp_s: np.ndarray, scan_first_s: float, scan_last_s: float, what: str
+                    ) -> str | None:
+    """Why a stream cannot be used with the scans (its stamps do not overlap theirs at all:
+    another clock), or None."""
+    first, last = float(stamp_s[0]), float(stamp_s[-1])
+    if last < scan_first_s or first > scan_last_s:
+        return (f"{what} stamps {first:.6g}..{last:.6g} s do not overlap the scans' "
+                f"{scan_first_s:.6g}..{scan_last_s:.6g} s (not the clock of the scan stamps? set "
+                f"the time_offset_s of the config)")
+    return None
+
+
 def check_overlap(source: str, stamp_s: np.ndarray, scan_first_s: float, scan_last_s: float,
                   what: str, slack_s: float = 1.0) -> None:
     """Refuse a stream whose stamps do not overlap the scans' at all (another clock: nothing
     sensible can be done); warn when it misses more than slack_s at either end of them."""
+    problem = overlap_problem(stamp_s, scan_first_s, scan_last_s, what)
+    if problem is not None:
+        raise InputError(source, problem)
     first, last = float(stamp_s[0]), float(stamp_s[-1])
-    if last < scan_first_s or first > scan_last_s:
-        raise InputError(source, f"{what} stamps {first:.6g}..{last:.6g} s do not overlap the "
-                                 f"scans' {scan_first_s:.6g}..{scan_last_s:.6g} s (not the clock "
-                                 f"of the scan stamps? set the time_offset_s of the config)")
     if first > scan_first_s + slack_s or last < scan_last_s - slack_s:
         log.warning("%s: %s stamps %.6g..%.6g s cover only part of the scans' %.6g..%.6g s",
                     source, what, first, last, scan_first_s, scan_last_s)
@@ -240,13 +251,18 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
                   imu_topic: str | None = None, gnss_topic: str | None = None) -> InertialInput:
     """Read the IMU and GNSS of an input: imu.csv / gnss.csv beside a folder's scans (or in its
     scans/ subfolder), or the sensor_msgs/Imu and NavSatFix topics of a bag (picked like the
-    PointCloud2 topic, or named). scan_stamps (s), when known before reading the scans, are
-    checked against the streams' stamps (see check_overlap)."""
+    PointCloud2 topic, or named). scan_stamps (s) are checked against the streams' stamps (see
+    check_overlap); a bag topic picked without being named that does not overlap them is not
+    used (a warning, and the reason in the summary) instead of stopping the run."""
     is_bag = kind == "rosbag"
-    if not is_bag:
-        for flag, value in (("--imu-topic", imu_topic), ("--gnss-topic", gnss_topic)):
-            if value is not None:
-                log.warning("%s %s ignored: %s is not a rosbag", flag, value, data)
+    for flag, value, enabled in (("--imu-topic", imu_topic, imu_enabled),
+                                 ("--gnss-topic", gnss_topic, gnss_enabled)):
+        if value is not None and not is_bag:
+            log.warning("%s %s ignored: %s is not a rosbag", flag, value, data)
+        elif value is not None and not enabled:
+            log.warning("%s %s ignored: switched off (--no-%s or its enabled: false)", flag,
+                        value, flag[2:-6])
+    topics = {"imu": imu_topic, "gnss": gnss_topic}
     streams: dict[str, object] = {}
     summary: dict[str, dict] = {}
     for what, enabled, offset_s in (("imu", imu_enabled, imu_offset_s),
@@ -257,7 +273,7 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
             from lidar_slam.io import rosbag
 
             reader = rosbag.read_imu_topic if what == "imu" else rosbag.read_gnss_topic
-            stream, why = reader(data, imu_topic if what == "imu" else gnss_topic)
+            stream, why = reader(data, topics[what])
         else:
             name, reader = (IMU_FILE, read_imu_csv) if what == "imu" else (GNSS_FILE,
                                                                              read_gnss_csv)
@@ -267,9 +283,19 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
             streams[what] = None
             continue
         stream = stream.shifted(offset_s) if offset_s else stream
+        label = "IMU" if what == "imu" else "GNSS"
         if scan_stamps is not None and len(scan_stamps):
-            check_overlap(stream.source, stream.stamp_s, float(scan_stamps[0]),
-                          float(scan_stamps[-1]), "IMU" if what == "imu" else "GNSS")
+            span = float(scan_stamps[0]), float(scan_stamps[-1])
+            problem = overlap_problem(stream.stamp_s, *span, label)
+            if problem is not None and is_bag and topics[what] is None:
+                # A topic picked without being asked for (e.g. an Ouster's own IMU stamped by
+                # the sensor's clock) must not stop a run that can go on without it.
+                log.warning("%s: not used: %s; --no-%s silences this", stream.source, problem,
+                            what)
+                summary[what] = {"used": False, "reason": f"{stream.source}: {problem}"}
+                streams[what] = None
+                continue
+            check_overlap(stream.source, stream.stamp_s, *span, label)
         summary[what] = {"used": True, **stream_info(stream.stamp_s, stream.source,
                                                       stream.dropped, offset_s)}
         streams[what] = stream

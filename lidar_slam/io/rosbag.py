@@ -670,6 +670,7 @@ class RosbagSource:
         if self._count == 0:
             raise InputError(self.path, f"topic {self.topic} has no messages")
         self._kept: list[int] | None = None  # topic positions of the kept messages
+        self._stamps_s = np.empty(0)  # their header stamps (s), set with _kept
 
     @property
     def input_notes(self) -> dict[str, int]:
@@ -700,6 +701,7 @@ class RosbagSource:
         if self._kept is not None:
             return self._kept
         kept: list[int] = []
+        stamps_ns: list[int] = []
         duplicate = backwards = n_read = 0
         last = None
         with open_bag(self.path) as bag:
@@ -710,6 +712,7 @@ class RosbagSource:
                     backwards += stamp < last
                     continue
                 kept.append(n_read - 1)
+                stamps_ns.append(stamp)
                 last = stamp
         if n_read < self._count:
             raise InputError(self.path, f"{self.topic}: the bag lists {self._count} messages but "
@@ -720,7 +723,14 @@ class RosbagSource:
                         self.topic, duplicate + backwards, n_read, duplicate, backwards)
         self._notes.update(dropped_duplicate_stamps=duplicate, dropped_backwards_stamps=backwards)
         self._kept = kept
+        self._stamps_s = np.array(stamps_ns, dtype=np.float64) * 1e-9
         return kept
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """Header stamps (s) of the kept scans, as Scan.stamp_s."""
+        self._kept_positions()
+        return self._stamps_s
 
     def __len__(self) -> int:
         return len(self._kept_positions())

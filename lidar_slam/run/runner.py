@@ -149,11 +149,11 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
 
 def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None):
     """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial), checked
-    against the scan stamps where those are known before the scans are read. Not yet used by
+    against the scan stamps. Not yet used by
     the estimator: read, checked and reported in summary.json."""
     from lidar_slam.io.inertial import load_inertial
 
-    stamps = source.stamps if source.kind in ("folder", "kitti", "kitti_raw") else None
+    stamps = source.stamps if source.kind != "file" else None
     return load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
                          gnss_enabled=cfg.gnss.enabled, imu_offset_s=cfg.imu.time_offset_s,
                          gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
