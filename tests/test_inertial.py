@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 import subprocess
 import sys
@@ -109,6 +110,15 @@ def test_an_imu_file_that_cannot_be_used_is_one_error_naming_it(tmp_path, text, 
         read_imu_csv(path)
     message = str(err.value)
     assert message.startswith(str(path)) and needle in message and "\n" not in message, message
+
+
+@pytest.mark.parametrize("scale,needle", [(1 / 9.81, "median specific force 1 m/s^2"),
+                                           (0.0, "median specific force 0 m/s^2")])
+def test_an_imu_file_in_g_or_without_gravity_is_refused(tmp_path, scale, needle):
+    rows = _imu_rows()
+    rows[:, 4:7] *= scale
+    with pytest.raises(InputError, match=re.escape(needle + " (expected about 9.81")):
+        read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
 
 
 def test_gnss_csv_drops_invalid_fixes_and_keeps_the_rest(tmp_path, caplog):

@@ -26,6 +26,9 @@ IMU_COLUMNS = ("stamp_s", "wx", "wy", "wz", "ax", "ay", "az")
 GNSS_COLUMNS = ("stamp_s", "lat_deg", "lon_deg", "alt_m", "sigma_h_m", "sigma_v_m")
 # A gap between IMU samples longer than this many median periods counts as missing samples.
 GAP_PERIODS = 5.0
+# The median norm of the specific force is ~9.81 m/s^2 on any recording that is not in free
+# fall; outside this range the file is in g (~1) or has gravity removed (~0): refused.
+MIN_MEDIAN_SPECIFIC_FORCE, MAX_MEDIAN_SPECIFIC_FORCE = 5.0, 20.0
 
 
 @dataclass(frozen=True)
@@ -163,6 +166,10 @@ def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] 
                     "longest %.3f s", source, gaps, GAP_PERIODS, float(np.median(dt)),
                     float(dt.max()))
     counts["gaps"] = gaps
+    g_median = float(np.median(np.linalg.norm(kept[:, 4:7], axis=1)))
+    if not MIN_MEDIAN_SPECIFIC_FORCE <= g_median <= MAX_MEDIAN_SPECIFIC_FORCE:
+        raise InputError(source, f"median specific force {g_median:.3g} m/s^2 (expected about "
+                                 f"9.81 with gravity included: in g, or gravity removed?)")
     return ImuSamples(kept[:, 0], kept[:, 1:4].copy(), kept[:, 4:7].copy(), str(source),
                       {**counts, **(dropped or {})})
 
