@@ -794,32 +794,45 @@ def _pick_typed_topic(path: Path, topics: dict[str, tuple[str, int]], topic: str
     return typed[0] if typed else None
 
 
-def _typed_messages(path: Path, topic: str | None, msgtype: str, flag: str
-                    ) -> tuple[str | None, list[Any]]:
-    """The picked topic and its deserialized messages (an empty list when there is no topic)."""
+def _typed_rows(path: Path, topic: str | None, msgtype: str, flag: str, row: Any
+                ) -> tuple[str | None, np.ndarray]:
+    """The picked topic and row(message) of each of its messages as an (N, k) array (None and
+    an empty array when there is no such topic); messages are not kept (an hour of IMU at
+    200 Hz is 720k of them)."""
     with open_bag(path) as bag:
         picked = _pick_typed_topic(path, bag.topics(), topic, msgtype, flag)
         if picked is None:
-            return None, []
-        messages = []
+            return None, np.empty((0, 0))
+        rows = []
         for position, deserialize in enumerate(_topic_messages(bag, picked)):
             try:
-                messages.append(deserialize())
+                msg = deserialize()
             except (*_BAG_ERRORS, *_LEAKS) as exc:
                 raise InputError(path, f"{picked} message {position} cannot be deserialized "
                                        f"({_problem(exc)})") from exc
-    return picked, messages
+            rows.append(row(msg))
+    return picked, np.array(rows, dtype=np.float64)
+
+
+def _imu_row(m: Any) -> tuple[float, ...]:
+    return (header_stamp_ns(m) * 1e-9, m.angular_velocity.x, m.angular_velocity.y,
+            m.angular_velocity.z, m.linear_acceleration.x, m.linear_acceleration.y,
+            m.linear_acceleration.z)
+
+
+def _fix_row(m: Any) -> tuple[float, ...]:
+    """stamp, lat, lon, alt, sigma_h, sigma_v, status, covariance type."""
+    cov = m.position_covariance
+    return (header_stamp_ns(m) * 1e-9, m.latitude, m.longitude, m.altitude,
+            max(cov[0], cov[4]), cov[8], m.status.status, m.position_covariance_type)
 
 
 def read_imu_topic(path: Path, topic: str | None = None) -> tuple[ImuSamples | None, str | None]:
     """The sensor_msgs/Imu samples of a bag (header stamps), cleaned as imu.csv; or None and why
     not (no Imu topic)."""
-    picked, messages = _typed_messages(path, topic, IMU, "--imu-topic")
+    picked, rows = _typed_rows(path, topic, IMU, "--imu-topic", _imu_row)
     if picked is None:
         return None, "no sensor_msgs/Imu topic in the bag"
-    rows = np.array([(header_stamp_ns(m) * 1e-9, m.angular_velocity.x, m.angular_velocity.y,
-                      m.angular_velocity.z, m.linear_acceleration.x, m.linear_acceleration.y,
-                      m.linear_acceleration.z) for m in messages], dtype=np.float64)
     return imu_from_rows(f"{path}:{picked}", rows.reshape(-1, 7)), None
 
 
@@ -828,24 +841,19 @@ def read_gnss_topic(path: Path, topic: str | None = None
     """The sensor_msgs/NavSatFix fixes of a bag (header stamps), cleaned as gnss.csv; fixes
     with status NO_FIX (< 0) or an unknown covariance (type 0) are dropped and counted. sigma_h
     is the larger of the east and north sigmas of the covariance's diagonal."""
-    picked, messages = _typed_messages(path, topic, NAVSATFIX, "--gnss-topic")
+    picked, rows = _typed_rows(path, topic, NAVSATFIX, "--gnss-topic", _fix_row)
     if picked is None:
         return None, "no sensor_msgs/NavSatFix topic in the bag"
-    rows = np.full((len(messages), 6), np.nan)
-    no_fix = unknown_cov = 0
-    for i, m in enumerate(messages):
-        cov = np.asarray(m.position_covariance, dtype=np.float64)
-        if m.status.status < 0:
-            no_fix += 1
-            continue
-        if m.position_covariance_type == 0:
-            unknown_cov += 1
-            continue
-        with np.errstate(invalid="ignore"):
-            rows[i] = (header_stamp_ns(m) * 1e-9, m.latitude, m.longitude, m.altitude,
-                       np.sqrt(max(cov[0], cov[4])), np.sqrt(cov[8]))
-    if no_fix or unknown_cov:
+    rows = rows.reshape(-1, 8)
+    no_fix = rows[:, 6] < 0
+    unknown_cov = ~no_fix & (rows[:, 7] == 0)
+    with np.errstate(invalid="ignore"):
+        rows[:, 4:6] = np.sqrt(rows[:, 4:6])  # variances (m^2) to sigmas; negative: NaN
+    fixes = rows[:, :6].copy()
+    fixes[no_fix | unknown_cov] = np.nan  # dropped (and counted as invalid) by gnss_from_rows
+    if no_fix.any() or unknown_cov.any():
         log.warning("%s:%s: %d fixes without a fix (status < 0) and %d with an unknown "
-                    "covariance are not used", path, picked, no_fix, unknown_cov)
-    return gnss_from_rows(f"{path}:{picked}", rows,
-                          {"no_fix": no_fix, "unknown_covariance": unknown_cov}), None
+                    "covariance are not used", path, picked, no_fix.sum(), unknown_cov.sum())
+    return gnss_from_rows(f"{path}:{picked}", fixes,
+                          {"no_fix": int(no_fix.sum()),
+                           "unknown_covariance": int(unknown_cov.sum())}), None
