@@ -148,10 +148,10 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
 
 
 def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None):
-    """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial), checked
+    """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
     against the scan stamps. Not yet used by
     the estimator: read, checked and reported in summary.json."""
-    from lidar_slam.io.inertial import load_inertial
+    from lidar_slam.io.inertial_input import load_inertial
 
     stamps = source.stamps if source.kind != "file" else None
     return load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
