@@ -6,6 +6,7 @@ import logging
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -246,6 +247,68 @@ class CheckpointConfig(_Section):
     every_keyframes: NonNegativeInt = 100
 
 
+class ImuConfig(_Section):
+    """The IMU (imu.csv beside the scans or a sensor_msgs/Imu topic; lidar_slam.io.inertial)."""
+
+    enabled: bool = True
+    # The IMU's pose in the lidar frame: 6 numbers x, y, z (m), roll, pitch, yaw (deg; extrinsic
+    # x-y-z, i.e. R = Rz(yaw) Ry(pitch) Rx(roll)), or 16 numbers, the 4x4 matrix row by row.
+    T_lidar_imu: list[float] = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    # Added to every IMU stamp to put it on the clock of the scan stamps (s).
+    time_offset_s: float = 0.0
+    # Continuous-time noise of a BMI088-class MEMS unit. Densities from the BMI088 datasheet
+    # (BST-BMI088-DS001): gyro 0.014 deg/s/sqrt(Hz) = 2.4e-4 rad/s/sqrt(Hz), accelerometer
+    # 175 ug/sqrt(Hz) = 1.7e-3 m/s^2/sqrt(Hz). The datasheet gives no bias random walk; these
+    # are the usual order for such units (to be calibrated, e.g. by an Allan variance).
+    gyro_noise_density: Positive = 2.4e-4  # rad/s/sqrt(Hz)
+    accel_noise_density: Positive = 1.7e-3  # m/s^2/sqrt(Hz)
+    gyro_bias_random_walk: Positive = 2.0e-5  # rad/s^2/sqrt(Hz)
+    accel_bias_random_walk: Positive = 3.0e-4  # m/s^3/sqrt(Hz)
+
+    @model_validator(mode="after")
+    def _extrinsic_is_rigid(self) -> ImuConfig:
+        self.T_lidar_imu_matrix()
+        return self
+
+    def T_lidar_imu_matrix(self) -> np.ndarray:  # noqa: N802 (frame-named, as the project)
+        """T_lidar_imu as a 4x4 float64 array (maps IMU-frame points into the lidar frame)."""
+        values = np.asarray(self.T_lidar_imu, dtype=np.float64)
+        if len(values) == 6:
+            from scipy.spatial.transform import Rotation
+
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_euler("xyz", values[3:], degrees=True).as_matrix()
+            T[:3, 3] = values[:3]
+            return T
+        if len(values) != 16:
+            raise ValueError(f"T_lidar_imu must have 6 numbers (x y z m, roll pitch yaw deg) "
+                             f"or 16 (a 4x4 matrix row by row), not {len(values)}")
+        T = values.reshape(4, 4)
+        R = T[:3, :3]
+        if (not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+                or np.linalg.det(R) <= 0):
+            raise ValueError("T_lidar_imu is not a rigid transform (its rotation must be "
+                             "orthonormal with determinant +1, its last row 0 0 0 1)")
+        return T.copy()
+
+
+class GnssConfig(_Section):
+    """The GNSS receiver (gnss.csv beside the scans or a sensor_msgs/NavSatFix topic)."""
+
+    enabled: bool = True
+    # The antenna's position in the lidar frame (m): the fixes are of the antenna, not the lidar.
+    lever_arm_m: list[float] = [0.0, 0.0, 0.0]
+    # Added to every GNSS stamp to put it on the clock of the scan stamps (s).
+    time_offset_s: float = 0.0
+
+    @model_validator(mode="after")
+    def _lever_arm_is_a_vector(self) -> GnssConfig:
+        if len(self.lever_arm_m) != 3:
+            raise ValueError(f"lever_arm_m must have 3 numbers (x y z m), not "
+                             f"{len(self.lever_arm_m)}")
+        return self
+
+
 class SlamConfig(_Section):
     data: DataConfig = DataConfig()
     odometry: OdometryConfig = OdometryConfig()
@@ -255,6 +318,8 @@ class SlamConfig(_Section):
     map: MapConfig = MapConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
     localize: LocalizeConfig = LocalizeConfig()
+    imu: ImuConfig = ImuConfig()
+    gnss: GnssConfig = GnssConfig()
 
     def voxel_size_m(self) -> float:
         """Effective odometry voxel size in metres."""

@@ -20,6 +20,13 @@ def run(
     start: int = typer.Option(0, "--start", min=0, help="First scan (0-based)."),
     n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1, help="Number of scans."),
     topic: Optional[str] = typer.Option(None, "--topic", help="PointCloud2 topic of a bag."),
+    imu_topic: Optional[str] = typer.Option(None, "--imu-topic",
+                                            help="sensor_msgs/Imu topic of a bag."),
+    gnss_topic: Optional[str] = typer.Option(None, "--gnss-topic",
+                                             help="sensor_msgs/NavSatFix topic of a bag."),
+    no_imu: bool = typer.Option(False, "--no-imu", help="Do not read the IMU (imu.csv / topic)."),
+    no_gnss: bool = typer.Option(False, "--no-gnss",
+                                 help="Do not read the GNSS (gnss.csv / topic)."),
     no_loops: bool = typer.Option(False, "--no-loops", help="Odometry only."),
     no_deskew: bool = typer.Option(False, "--no-deskew", help="Do not deskew."),
     viz: bool = typer.Option(False, "--viz", help="Open the rerun viewer."),
@@ -36,7 +43,9 @@ def run(
     from lidar_slam.run.runner import run_sequence
 
     outcome = run_sequence(data, out, config=config, start=start, n_scans=n_scans, topic=topic,
-                           overrides=run_overrides(no_loops, no_deskew), viz=viz, rrd=rrd,
+                           imu_topic=imu_topic, gnss_topic=gnss_topic,
+                           overrides=run_overrides(no_loops, no_deskew, no_imu, no_gnss),
+                           viz=viz, rrd=rrd,
                            overwrite=overwrite, resume=resume)
     typer.echo(summary_table(outcome.summary))
     typer.echo(f"wrote {out}")
@@ -44,9 +53,14 @@ def run(
         raise outcome.failure
 
 
-def run_overrides(no_loops: bool, no_deskew: bool) -> dict:
-    """The config overrides of --no-loops and --no-deskew."""
+def run_overrides(no_loops: bool, no_deskew: bool, no_imu: bool = False,
+                  no_gnss: bool = False) -> dict:
+    """The config overrides of --no-loops, --no-deskew, --no-imu and --no-gnss."""
     overrides: dict = {}
+    if no_imu:
+        overrides["imu"] = {"enabled": False}
+    if no_gnss:
+        overrides["gnss"] = {"enabled": False}
     if no_loops:
         overrides["loop"] = {"enabled": False}
     if no_deskew:

@@ -52,6 +52,7 @@ if sys.version_info >= (3, 14):
     from compression.zstd import ZstdDecompressor, ZstdError
 else:  # rosbags depends on the backport below 3.14
     from backports.zstd import ZstdDecompressor, ZstdError
+from lidar_slam.io.inertial import GnssFixes, ImuSamples, gnss_from_rows, imu_from_rows
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import INTENSITY_FIELDS, TIME_FIELDS
 from lidar_slam.types import Scan
@@ -59,6 +60,8 @@ from lidar_slam.types import Scan
 log = logging.getLogger(__name__)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+IMU = "sensor_msgs/msg/Imu"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 # PointField datatype -> NumPy type code (sensor_msgs/PointField INT8..FLOAT64).
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -667,6 +670,7 @@ class RosbagSource:
         if self._count == 0:
             raise InputError(self.path, f"topic {self.topic} has no messages")
         self._kept: list[int] | None = None  # topic positions of the kept messages
+        self._stamps_s = np.empty(0)  # their header stamps (s), set with _kept
 
     @property
     def input_notes(self) -> dict[str, int]:
@@ -697,6 +701,7 @@ class RosbagSource:
         if self._kept is not None:
             return self._kept
         kept: list[int] = []
+        stamps_ns: list[int] = []
         duplicate = backwards = n_read = 0
         last = None
         with open_bag(self.path) as bag:
@@ -707,6 +712,7 @@ class RosbagSource:
                     backwards += stamp < last
                     continue
                 kept.append(n_read - 1)
+                stamps_ns.append(stamp)
                 last = stamp
         if n_read < self._count:
             raise InputError(self.path, f"{self.topic}: the bag lists {self._count} messages but "
@@ -717,7 +723,14 @@ class RosbagSource:
                         self.topic, duplicate + backwards, n_read, duplicate, backwards)
         self._notes.update(dropped_duplicate_stamps=duplicate, dropped_backwards_stamps=backwards)
         self._kept = kept
+        self._stamps_s = np.array(stamps_ns, dtype=np.float64) * 1e-9
         return kept
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """Header stamps (s) of the kept scans, as Scan.stamp_s."""
+        self._kept_positions()
+        return self._stamps_s
 
     def __len__(self) -> int:
         return len(self._kept_positions())
@@ -759,3 +772,88 @@ class RosbagSource:
                   self.topic, position, len(cloud.points), total, cloud.n_dropped)
         return Scan(index, header_stamp_ns(msg) * 1e-9, cloud.points, cloud.point_times,
                     cloud.intensity, f"{self.path}:{self.topic}[{position}]")
+
+
+def _pick_typed_topic(path: Path, topics: dict[str, tuple[str, int]], topic: str | None,
+                      msgtype: str, flag: str) -> str | None:
+    """The topic of msgtype to read: the one named, else the only one (None when there is
+    none); several without a choice is refused, as PointCloud2 topics are."""
+    short = msgtype.replace("/msg/", "/")
+    typed = sorted(t for t, (typ, _) in topics.items() if typ == msgtype)
+    if topic is not None:
+        if topic not in topics:
+            raise InputError(path, f"no topic {topic} ({short} topics: "
+                                   f"{', '.join(typed) or 'none'})")
+        if topics[topic][0] != msgtype:
+            raise InputError(path, f"topic {topic} is {topics[topic][0]}, not {short}")
+        return topic
+    if len(typed) > 1:
+        off = flag.replace("-topic", "").replace("--", "--no-")
+        raise InputError(path, f"{len(typed)} {short} topics ({', '.join(typed)}): pass {flag} "
+                               f"to choose one (or {off})")
+    return typed[0] if typed else None
+
+
+def _typed_rows(path: Path, topic: str | None, msgtype: str, flag: str, row: Any
+                ) -> tuple[str | None, np.ndarray]:
+    """The picked topic and row(message) of each of its messages as an (N, k) array (None and
+    an empty array when there is no such topic); messages are not kept (an hour of IMU at
+    200 Hz is 720k of them)."""
+    with open_bag(path) as bag:
+        picked = _pick_typed_topic(path, bag.topics(), topic, msgtype, flag)
+        if picked is None:
+            return None, np.empty((0, 0))
+        rows = []
+        for position, deserialize in enumerate(_topic_messages(bag, picked)):
+            try:
+                msg = deserialize()
+            except (*_BAG_ERRORS, *_LEAKS) as exc:
+                raise InputError(path, f"{picked} message {position} cannot be deserialized "
+                                       f"({_problem(exc)})") from exc
+            rows.append(row(msg))
+    return picked, np.array(rows, dtype=np.float64)
+
+
+def _imu_row(m: Any) -> tuple[float, ...]:
+    return (header_stamp_ns(m) * 1e-9, m.angular_velocity.x, m.angular_velocity.y,
+            m.angular_velocity.z, m.linear_acceleration.x, m.linear_acceleration.y,
+            m.linear_acceleration.z)
+
+
+def _fix_row(m: Any) -> tuple[float, ...]:
+    """stamp, lat, lon, alt, sigma_h, sigma_v, status, covariance type."""
+    cov = m.position_covariance
+    return (header_stamp_ns(m) * 1e-9, m.latitude, m.longitude, m.altitude,
+            max(cov[0], cov[4]), cov[8], m.status.status, m.position_covariance_type)
+
+
+def read_imu_topic(path: Path, topic: str | None = None) -> tuple[ImuSamples | None, str | None]:
+    """The sensor_msgs/Imu samples of a bag (header stamps), cleaned as imu.csv; or None and why
+    not (no Imu topic)."""
+    picked, rows = _typed_rows(path, topic, IMU, "--imu-topic", _imu_row)
+    if picked is None:
+        return None, "no sensor_msgs/Imu topic in the bag"
+    return imu_from_rows(f"{path}:{picked}", rows.reshape(-1, 7)), None
+
+
+def read_gnss_topic(path: Path, topic: str | None = None
+                    ) -> tuple[GnssFixes | None, str | None]:
+    """The sensor_msgs/NavSatFix fixes of a bag (header stamps), cleaned as gnss.csv; fixes
+    with status NO_FIX (< 0) or an unknown covariance (type 0) are dropped and counted. sigma_h
+    is the larger of the east and north sigmas of the covariance's diagonal."""
+    picked, rows = _typed_rows(path, topic, NAVSATFIX, "--gnss-topic", _fix_row)
+    if picked is None:
+        return None, "no sensor_msgs/NavSatFix topic in the bag"
+    rows = rows.reshape(-1, 8)
+    no_fix = rows[:, 6] < 0
+    unknown_cov = ~no_fix & (rows[:, 7] == 0)
+    with np.errstate(invalid="ignore"):
+        rows[:, 4:6] = np.sqrt(rows[:, 4:6])  # variances (m^2) to sigmas; negative: NaN
+    fixes = rows[:, :6].copy()
+    fixes[no_fix | unknown_cov] = np.nan  # dropped (and counted as invalid) by gnss_from_rows
+    if no_fix.any() or unknown_cov.any():
+        log.warning("%s:%s: %d fixes without a fix (status < 0) and %d with an unknown "
+                    "covariance are not used", path, picked, no_fix.sum(), unknown_cov.sum())
+    return gnss_from_rows(f"{path}:{picked}", fixes,
+                          {"no_fix": int(no_fix.sum()),
+                           "unknown_covariance": int(unknown_cov.sum())}), None

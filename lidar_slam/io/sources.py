@@ -36,6 +36,7 @@ class ScanSource(Protocol):
     kind: str  # "folder", "file", "kitti", "kitti_raw" or "rosbag" (reported in summary.json)
     topic: str | None  # the bag topic read, None for other inputs
     ground_truth: np.ndarray | None
+    stamps: np.ndarray  # stamp (s) of every input scan, as Scan.stamp_s
 
     @property
     def input_notes(self) -> dict[str, int]: ...  # what was dropped or recovered (summary.json)

@@ -147,6 +147,19 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
     return None
 
 
+def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None):
+    """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
+    against the scan stamps. Not yet used by
+    the estimator: read, checked and reported in summary.json."""
+    from lidar_slam.io.inertial_input import load_inertial
+
+    stamps = source.stamps if source.kind != "file" else None
+    return load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
+                         gnss_enabled=cfg.gnss.enabled, imu_offset_s=cfg.imu.time_offset_s,
+                         gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
+                         gnss_topic=gnss_topic)
+
+
 @dataclass
 class RunOutcome:
     """What run_sequence wrote: the summary, the source's ground truth (all input scans, or
@@ -174,6 +187,7 @@ def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
 
 def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: int = 0,
                  n_scans: int | None = None, topic: str | None = None,
+                 imu_topic: str | None = None, gnss_topic: str | None = None,
                  overrides: dict | None = None, viz: bool = False, rrd: Path | None = None,
                  overwrite: bool = False, resume: bool = False,
                  progress: bool = True) -> RunOutcome:
@@ -193,6 +207,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction)
     total = scan_range(data, start, n_scans, len(source))
+    inertial = _load_inertial(data, source, cfg, imu_topic, gnss_topic)
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg)
     resuming = _resuming(out, identity, overwrite, resume)
@@ -226,7 +241,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
             run_info = {"input": str(data), "input_kind": source.kind, "topic": source.topic,
                         "config_overlay": str(config) if config is not None else None,
                         "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
-                        "input_notes": source.input_notes, "start": start,
+                        "input_notes": source.input_notes, **inertial.summary,
+                        "start": start,
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}
             summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,

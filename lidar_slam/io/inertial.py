@@ -1,0 +1,235 @@
+"""IMU and GNSS input: imu.csv / gnss.csv beside the scans (issue 22, item 1).
+
+imu.csv: header `stamp_s,wx,wy,wz,ax,ay,az`; angular rate (rad/s) and specific force (m/s^2,
+gravity included: ~+9.81 on z at rest with z up), both in the IMU frame.
+gnss.csv: header `stamp_s,lat_deg,lon_deg,alt_m,sigma_h_m,sigma_v_m` (WGS84, 1-sigma in m).
+Stamps are on the clock of times.txt. Rows that cannot be used are dropped and counted (one
+warning per file, the counts in `dropped`): non-finite or invalid values, a stamp equal to the
+previous kept one (duplicate), a stamp before it (out of order). A file with a bad header, a
+row that is not numbers, or fewer than two usable rows is refused (InputError, exit 2).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam.errors import InputError
+
+log = logging.getLogger(__name__)
+
+IMU_FILE, GNSS_FILE = "imu.csv", "gnss.csv"
+IMU_COLUMNS = ("stamp_s", "wx", "wy", "wz", "ax", "ay", "az")
+GNSS_COLUMNS = ("stamp_s", "lat_deg", "lon_deg", "alt_m", "sigma_h_m", "sigma_v_m")
+# A gap between IMU samples longer than this many median periods counts as missing samples.
+GAP_PERIODS = 5.0
+# The median norm of the specific force is ~9.81 m/s^2 on any recording that is not in free
+# fall; outside this range the file is in g (~1) or has gravity removed (~0): refused.
+MIN_MEDIAN_SPECIFIC_FORCE, MAX_MEDIAN_SPECIFIC_FORCE = 5.0, 20.0
+
+
+@dataclass(frozen=True)
+class ImuSamples:
+    """IMU samples with strictly increasing stamps: stamp_s (N,), gyro_radps (N, 3) and
+    accel_mps2 (N, 3) specific force, both in the IMU frame; `dropped` counts what the reader
+    dropped and why."""
+
+    stamp_s: np.ndarray
+    gyro_radps: np.ndarray
+    accel_mps2: np.ndarray
+    source: str
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.stamp_s)
+
+    def shifted(self, offset_s: float) -> ImuSamples:
+        """The same samples with offset_s added to every stamp (onto the lidar clock)."""
+        return ImuSamples(self.stamp_s + offset_s, self.gyro_radps, self.accel_mps2,
+                          self.source, self.dropped)
+
+
+@dataclass(frozen=True)
+class GnssFixes:
+    """GNSS fixes with strictly increasing stamps: stamp_s (N,), lat_deg / lon_deg / alt_m (N,)
+    WGS84 (ellipsoidal height), sigma_h_m / sigma_v_m (N,) 1-sigma; `dropped` as ImuSamples."""
+
+    stamp_s: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    sigma_h_m: np.ndarray
+    sigma_v_m: np.ndarray
+    source: str
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.stamp_s)
+
+    def shifted(self, offset_s: float) -> GnssFixes:
+        """The same fixes with offset_s added to every stamp (onto the lidar clock)."""
+        return GnssFixes(self.stamp_s + offset_s, self.lat_deg, self.lon_deg, self.alt_m,
+                         self.sigma_h_m, self.sigma_v_m, self.source, self.dropped)
+
+
+def _read_table(path: Path, columns: tuple[str, ...]) -> np.ndarray:
+    """The rows of a CSV file with exactly this header, as an (N, len(columns)) float array."""
+    try:
+        with path.open(encoding="utf-8") as fh:
+            header = fh.readline()
+            if not header.strip():
+                raise InputError(path, f"empty file (expected the header {','.join(columns)})")
+            names = tuple(name.strip() for name in header.strip().split(","))
+            if names != columns:
+                raise InputError(path, f"header is {','.join(names)[:80]!r}, expected "
+                                       f"{','.join(columns)}")
+            body = fh.read()
+            lines = [ln for ln in body.splitlines() if ln.partition("#")[0].strip()]
+            rows = (np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=2)
+                    if lines else np.empty((0, len(columns))))
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not a text file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read the file ({exc.strerror or exc})") from None
+    except ValueError:
+        raise InputError(path, _first_bad_line(body, len(columns))) from None
+    if rows.size == 0:  # only comments
+        return np.empty((0, len(columns)))
+    if rows.shape[1] != len(columns):
+        raise InputError(path, f"{rows.shape[1]} columns per row, expected {len(columns)}")
+    return rows
+
+
+def _first_bad_line(body: str, n_columns: int) -> str:
+    """What is wrong with the first row that is not n_columns numbers (file line numbers)."""
+    for n, line in enumerate(body.splitlines(), 2):  # line 1 is the header
+        fields = line.partition("#")[0].split(",")
+        if not line.partition("#")[0].strip():
+            continue
+        if len(fields) != n_columns:
+            return f"line {n}: {len(fields)} columns, expected {n_columns}"
+        for value in fields:
+            try:
+                float(value)
+            except ValueError:
+                return f"line {n}: not a number ({value.strip()[:40]!r})"
+    return "not a table of numbers"
+
+
+def _clean(path: Path, rows: np.ndarray, valid: np.ndarray, what: str
+           ) -> tuple[np.ndarray, dict[str, int]]:
+    """Rows kept (valid, and each stamp after the last kept one) and the counts dropped; one
+    warning naming the file when anything was dropped, InputError when fewer than 2 remain."""
+    invalid = int((~valid).sum())
+    stamps = rows[valid, 0]
+    keep = np.zeros(len(stamps), dtype=bool)
+    duplicate = backwards = 0
+    last = -np.inf
+    for i, stamp in enumerate(stamps):  # a running maximum: one pass, as the rosbag reader
+        if stamp > last:
+            keep[i], last = True, stamp
+        elif stamp == last:
+            duplicate += 1
+        else:
+            backwards += 1
+    kept = rows[valid][keep]
+    dropped = {"invalid": invalid, "duplicate_stamp": duplicate, "out_of_order": backwards}
+    if invalid or duplicate or backwards:
+        log.warning("%s: dropped %d of %d %s (%d non-finite or invalid, %d duplicate stamps, "
+                    "%d out of order)", path, len(rows) - len(kept), len(rows), what, invalid,
+                    duplicate, backwards)
+    if len(kept) < 2:
+        raise InputError(path, f"{len(kept)} usable {what} of {len(rows)} (need at least 2; "
+                               f"{invalid} non-finite or invalid, {duplicate} duplicate stamps, "
+                               f"{backwards} out of order)")
+    return kept, dropped
+
+
+def read_imu_csv(path: str | Path) -> ImuSamples:
+    """imu.csv (see the module docstring): rows with a non-finite value dropped, stamps made
+    strictly increasing by dropping duplicates and steps back, gaps counted (warning)."""
+    p = Path(path)
+    return imu_from_rows(p, _read_table(p, IMU_COLUMNS))
+
+
+def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None
+                  ) -> ImuSamples:
+    """ImuSamples from (N, 7) rows in the imu.csv column order, cleaned as read_imu_csv."""
+    kept, counts = _clean(Path(source), rows, np.isfinite(rows).all(axis=1), "IMU samples")
+    dt = np.diff(kept[:, 0])
+    gaps = int((dt > GAP_PERIODS * np.median(dt)).sum())
+    if gaps:
+        log.warning("%s: %d gaps longer than %g sample periods (%.4f s) in the IMU stream, the "
+                    "longest %.3f s", source, gaps, GAP_PERIODS, float(np.median(dt)),
+                    float(dt.max()))
+    counts["gaps"] = gaps
+    g_median = float(np.median(np.linalg.norm(kept[:, 4:7], axis=1)))
+    if not MIN_MEDIAN_SPECIFIC_FORCE <= g_median <= MAX_MEDIAN_SPECIFIC_FORCE:
+        raise InputError(source, f"median specific force {g_median:.3g} m/s^2 (expected about "
+                                 f"9.81 with gravity included: in g, or gravity removed?)")
+    return ImuSamples(kept[:, 0], kept[:, 1:4].copy(), kept[:, 4:7].copy(), str(source),
+                      {**counts, **(dropped or {})})
+
+
+def read_gnss_csv(path: str | Path) -> GnssFixes:
+    """gnss.csv (see the module docstring): rows with a non-finite value, a latitude or
+    longitude out of range or a sigma that is not positive dropped, stamps as read_imu_csv."""
+    p = Path(path)
+    return gnss_from_rows(p, _read_table(p, GNSS_COLUMNS))
+
+
+def gnss_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None
+                   ) -> GnssFixes:
+    """GnssFixes from (N, 6) rows in the gnss.csv column order, cleaned as read_gnss_csv."""
+    with np.errstate(invalid="ignore"):
+        valid = (np.isfinite(rows).all(axis=1) & (np.abs(rows[:, 1]) <= 90)
+                 & (np.abs(rows[:, 2]) <= 180) & (rows[:, 4] > 0) & (rows[:, 5] > 0))
+    kept, counts = _clean(Path(source), rows, valid, "GNSS fixes")
+    return GnssFixes(*(kept[:, i].copy() for i in range(6)), str(source),
+                     {**counts, **(dropped or {})})
+
+
+def find_beside(folder: Path, name: str) -> Path | None:
+    """name in the input folder, or in its scans/ subfolder; None when in neither."""
+    for cand in (folder / name, folder / "scans" / name):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def stream_info(stamp_s: np.ndarray, source: str, dropped: dict[str, int],
+                time_offset_s: float) -> dict:
+    """What summary.json says of an IMU or GNSS stream that was used."""
+    span = float(stamp_s[-1] - stamp_s[0])
+    return {"source": source, "samples": int(len(stamp_s)),
+            "rate_hz": round((len(stamp_s) - 1) / span, 3) if span > 0 else None,
+            "first_stamp_s": float(stamp_s[0]), "last_stamp_s": float(stamp_s[-1]),
+            "time_offset_s": time_offset_s, "dropped": dict(dropped)}
+
+
+def overlap_problem(stamp_s: np.ndarray, scan_first_s: float, scan_last_s: float, what: str
+                    ) -> str | None:
+    """Why a stream cannot be used with the scans (its stamps do not overlap theirs at all:
+    another clock), or None."""
+    first, last = float(stamp_s[0]), float(stamp_s[-1])
+    if last < scan_first_s or first > scan_last_s:
+        return (f"{what} stamps {first:.6g}..{last:.6g} s do not overlap the scans' "
+                f"{scan_first_s:.6g}..{scan_last_s:.6g} s (not the clock of the scan stamps? set "
+                f"the time_offset_s of the config)")
+    return None
+
+
+def check_overlap(source: str, stamp_s: np.ndarray, scan_first_s: float, scan_last_s: float,
+                  what: str, slack_s: float = 1.0) -> None:
+    """Refuse a stream whose stamps do not overlap the scans' at all (another clock: nothing
+    sensible can be done); warn when it misses more than slack_s at either end of them."""
+    problem = overlap_problem(stamp_s, scan_first_s, scan_last_s, what)
+    if problem is not None:
+        raise InputError(source, problem)
+    first, last = float(stamp_s[0]), float(stamp_s[-1])
+    if first > scan_first_s + slack_s or last < scan_last_s - slack_s:
+        log.warning("%s: %s stamps %.6g..%.6g s cover only part of the scans' %.6g..%.6g s",
+                    source, what, first, last, scan_first_s, scan_last_s)

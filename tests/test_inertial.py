@@ -1,0 +1,367 @@
+"""IMU and GNSS input (issue 22, item 1): imu.csv / gnss.csv beside the scans, sensor_msgs/Imu
+and NavSatFix bag topics, the imu:/gnss: config sections, and every kind of bad sample."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from lidar_slam.config import load_config
+from lidar_slam.errors import ConfigError, InputError
+from lidar_slam.io.inertial import read_gnss_csv, read_imu_csv
+from lidar_slam.io.inertial_input import load_inertial
+from lidar_slam.io.rosbag import read_gnss_topic, read_imu_topic
+
+REPO = Path(__file__).resolve().parents[1]
+IMU_HEADER = "stamp_s,wx,wy,wz,ax,ay,az\n"
+GNSS_HEADER = "stamp_s,lat_deg,lon_deg,alt_m,sigma_h_m,sigma_v_m\n"
+ROS2 = get_typestore(Stores.ROS2_HUMBLE)
+
+
+def _imu_rows(n: int = 100, rate_hz: float = 200.0, t0: float = 0.0) -> np.ndarray:
+    t = t0 + np.arange(n) / rate_hz
+    return np.c_[t, 0.01 * np.ones(n), np.zeros(n), 0.5 * np.ones(n), np.zeros((n, 2)),
+                 9.81 * np.ones(n)]
+
+
+def _gnss_rows(n: int = 10, t0: float = 0.0) -> np.ndarray:
+    t = t0 + np.arange(n, dtype=float)
+    return np.c_[t, 49.0 + 1e-5 * np.arange(n), 8.4 * np.ones(n), 115.0 * np.ones(n),
+                 np.ones(n), 2 * np.ones(n)]
+
+
+def _write(path: Path, header: str, rows) -> Path:
+    body = "".join(",".join(f"{v!r}" if isinstance(v, float) else str(v) for v in row) + "\n"
+                   for row in rows)
+    path.write_text(header + body)
+    return path
+
+
+def test_imu_csv_is_read_in_si_units_in_the_imu_frame(tmp_path):
+    rows = _imu_rows()
+    imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
+    assert len(imu) == 100
+    np.testing.assert_array_equal(imu.stamp_s, rows[:, 0])
+    np.testing.assert_array_equal(imu.gyro_radps, rows[:, 1:4])
+    np.testing.assert_array_equal(imu.accel_mps2, rows[:, 4:7])
+    assert imu.dropped == {"invalid": 0, "duplicate_stamp": 0, "out_of_order": 0, "gaps": 0}
+
+
+def test_non_finite_imu_samples_are_dropped_with_a_counted_warning(tmp_path, caplog):
+    rows = _imu_rows().tolist()
+    rows[10][4] = "nan"
+    rows[20][1] = "inf"
+    rows[30][0] = "nan"
+    imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
+    assert len(imu) == 97 and imu.dropped["invalid"] == 3
+    assert np.isfinite(imu.accel_mps2).all() and np.isfinite(imu.gyro_radps).all()
+    assert "dropped 3 of 100 IMU samples (3 non-finite or invalid" in caplog.text
+    assert "imu.csv" in caplog.text
+
+
+def test_duplicated_imu_stamps_are_dropped_and_counted(tmp_path, caplog):
+    rows = _imu_rows()
+    rows = np.insert(rows, 50, rows[50], axis=0)  # a repeated sample
+    imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
+    assert len(imu) == 100 and imu.dropped["duplicate_stamp"] == 1
+    assert (np.diff(imu.stamp_s) > 0).all()
+    assert "1 duplicate stamps" in caplog.text
+
+
+def test_out_of_order_imu_samples_are_dropped_and_counted(tmp_path, caplog):
+    rows = _imu_rows()
+    rows[[40, 41]] = rows[[41, 40]]  # two samples swapped: the second one steps back
+    imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
+    assert len(imu) == 99 and imu.dropped["out_of_order"] == 1
+    assert (np.diff(imu.stamp_s) > 0).all()
+    assert "1 out of order" in caplog.text
+
+
+def test_missing_imu_samples_are_counted_as_gaps(tmp_path, caplog):
+    rows = np.delete(_imu_rows(), np.s_[30:60], axis=0)  # 0.15 s without a sample
+    imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
+    assert imu.dropped["gaps"] == 1
+    assert "1 gaps longer than 5 sample periods" in caplog.text and "0.155 s" in caplog.text
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("", "empty file"),
+    ("t,wx,wy,wz,ax,ay,az\n0,0,0,0,0,0,9.8\n", "header is 't,wx,wy,wz,ax,ay,az'"),
+    (IMU_HEADER + "0,0,0,0,0,0,9.8\n0.005,0,0,x,0,0,9.8\n", "line 3: not a number ('x')"),
+    (IMU_HEADER + "0,0,0,0,0,0,9.8\n0.005,0,0,0,0,9.8\n", "line 3: 6 columns, expected 7"),
+    (IMU_HEADER, "0 usable IMU samples of 0"),
+    (IMU_HEADER + "0,0,0,0,0,0,9.8\nnan,0,0,0,0,0,9.8\n", "1 usable IMU samples of 2"),
+    (IMU_HEADER + "0,0,0,0,0,0,9.8\n0,0,0,0,0,0,9.8\n", "1 duplicate stamps"),
+])
+def test_an_imu_file_that_cannot_be_used_is_one_error_naming_it(tmp_path, text, needle):
+    path = tmp_path / "imu.csv"
+    path.write_text(text)
+    with pytest.raises(InputError) as err:
+        read_imu_csv(path)
+    message = str(err.value)
+    assert message.startswith(str(path)) and needle in message and "\n" not in message, message
+
+
+@pytest.mark.parametrize("scale,needle", [(1 / 9.81, "median specific force 1 m/s^2"),
+                                           (0.0, "median specific force 0 m/s^2")])
+def test_an_imu_file_in_g_or_without_gravity_is_refused(tmp_path, scale, needle):
+    rows = _imu_rows()
+    rows[:, 4:7] *= scale
+    with pytest.raises(InputError, match=re.escape(needle + " (expected about 9.81")):
+        read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
+
+
+def test_gnss_csv_drops_invalid_fixes_and_keeps_the_rest(tmp_path, caplog):
+    rows = _gnss_rows().tolist()
+    rows[2][1] = 91.0  # latitude out of range
+    rows[3][4] = 0.0  # a sigma that is not positive
+    rows[4][3] = "nan"
+    rows.insert(6, rows[6])  # a duplicate fix
+    gnss = read_gnss_csv(_write(tmp_path / "gnss.csv", GNSS_HEADER, rows))
+    assert len(gnss) == 7
+    assert gnss.dropped == {"invalid": 3, "duplicate_stamp": 1, "out_of_order": 0}
+    assert (gnss.sigma_h_m == 1).all() and (gnss.sigma_v_m == 2).all()
+    np.testing.assert_allclose(gnss.lat_deg[0], 49.0)
+    assert "dropped 4 of 11 GNSS fixes" in caplog.text
+
+
+def test_streams_on_another_clock_than_the_scans_are_refused_unless_offset(tmp_path):
+    _write(tmp_path / "imu.csv", IMU_HEADER, _imu_rows(t0=1.6e9).tolist())
+    scans = np.arange(5) * 0.1
+    with pytest.raises(InputError, match="do not overlap the scans' 0..0.4 s.*time_offset_s"):
+        load_inertial(tmp_path, "folder", scans, imu_enabled=True, gnss_enabled=True)
+    got = load_inertial(tmp_path, "folder", scans, imu_enabled=True, gnss_enabled=True,
+                        imu_offset_s=-1.6e9)
+    assert got.imu is not None and abs(got.imu.stamp_s[0]) < 1e-6
+    assert got.summary["imu"]["time_offset_s"] == -1.6e9
+    assert got.summary["gnss"] == {"used": False, "reason": "no gnss.csv beside the scans"}
+
+
+def test_imu_covering_part_of_the_scans_warns(tmp_path, caplog):
+    _write(tmp_path / "imu.csv", IMU_HEADER, _imu_rows(n=200).tolist())  # 0..0.995 s
+    load_inertial(tmp_path, "folder", np.arange(50) * 0.1, imu_enabled=True, gnss_enabled=False)
+    assert "cover only part of the scans' 0..4.9 s" in caplog.text
+
+
+def test_the_summary_says_what_was_read_and_what_was_switched_off(tmp_path):
+    (tmp_path / "scans").mkdir()
+    rows = _imu_rows(n=401)
+    rows[7][3] = np.nan
+    _write(tmp_path / "scans" / "imu.csv", IMU_HEADER, rows.tolist())
+    _write(tmp_path / "gnss.csv", GNSS_HEADER, _gnss_rows(3).tolist())
+    got = load_inertial(tmp_path, "folder", np.arange(21) * 0.1, imu_enabled=True,
+                        gnss_enabled=False)
+    assert got.gnss is None
+    assert got.summary["gnss"]["reason"] == "off (--no-gnss or gnss.enabled: false)"
+    imu = got.summary["imu"]
+    assert imu["used"] and imu["source"] == str(tmp_path / "scans" / "imu.csv")
+    assert imu["samples"] == 400 and imu["rate_hz"] == pytest.approx(200, rel=0.01)
+    assert imu["dropped"]["invalid"] == 1
+
+
+def test_imu_and_gnss_config_sections_check_the_extrinsics():
+    cfg = load_config(None, {"imu": {"T_lidar_imu": [1, 2, 3, 0, 0, 90]},
+                             "gnss": {"lever_arm_m": [0, 0, 1.5], "time_offset_s": 0.2}})
+    T = cfg.imu.T_lidar_imu_matrix()
+    np.testing.assert_allclose(T[:3, 3], [1, 2, 3])
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    matrix = load_config(None, {"imu": {"T_lidar_imu": T.ravel().tolist()}})
+    np.testing.assert_allclose(matrix.imu.T_lidar_imu_matrix(), T)
+    for bad, needle in [({"imu": {"T_lidar_imu": [1, 2]}}, "6 numbers"),
+                        ({"imu": {"T_lidar_imu": [2.0] + [0.0] * 15}}, "not a rigid transform"),
+                        ({"gnss": {"lever_arm_m": [1.0]}}, "3 numbers"),
+                        ({"imu": {"time_offset_s": float("nan")}}, "imu.time_offset_s")]:
+        with pytest.raises(ConfigError, match=needle):
+            load_config(None, bad)
+
+
+def _header(stamp_ns: int):
+    time = ROS2.types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9,
+                                                     nanosec=stamp_ns % 10**9)
+    return ROS2.types["std_msgs/msg/Header"](stamp=time, frame_id="imu")
+
+
+def _imu_msg(stamp_ns: int, w: float):
+    v3 = ROS2.types["geometry_msgs/msg/Vector3"]
+    quat = ROS2.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    return ROS2.types["sensor_msgs/msg/Imu"](
+        header=_header(stamp_ns), orientation=quat, orientation_covariance=np.zeros(9),
+        angular_velocity=v3(x=0.0, y=0.0, z=w), angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=v3(x=0.0, y=0.0, z=9.81), linear_acceleration_covariance=np.zeros(9))
+
+
+def _fix_msg(stamp_ns: int, status: int, cov_type: int):
+    st = ROS2.types["sensor_msgs/msg/NavSatStatus"](status=status, service=1)
+    return ROS2.types["sensor_msgs/msg/NavSatFix"](
+        header=_header(stamp_ns), status=st, latitude=49.0, longitude=8.4, altitude=115.0,
+        position_covariance=np.diag([4.0, 1.0, 9.0]).ravel(), position_covariance_type=cov_type)
+
+
+def _bag(path: Path, topics: dict[str, tuple[str, list]]) -> Path:
+    with Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for topic, (msgtype, msgs) in topics.items():
+            conn = writer.add_connection(topic, msgtype, typestore=ROS2)
+            for k, msg in enumerate(msgs):
+                writer.write(conn, 10**9 + k, ROS2.serialize_cdr(msg, msgtype))
+    return path
+
+
+def test_imu_and_navsatfix_topics_are_auto_picked_and_cleaned(tmp_path, caplog):
+    t0 = 1_700_000_000 * 10**9
+    imu_msgs = [_imu_msg(t0 + k * 5_000_000, 0.1 * k) for k in range(20)]
+    imu_msgs.insert(5, imu_msgs[5])  # a duplicated message
+    fixes = [_fix_msg(t0 + k * 10**9, 0, 2) for k in range(5)]
+    fixes[1] = _fix_msg(t0 + 10**9, -1, 2)  # no fix
+    fixes[2] = _fix_msg(t0 + 2 * 10**9, 0, 0)  # unknown covariance
+    path = _bag(tmp_path / "b", {"/imu": ("sensor_msgs/msg/Imu", imu_msgs),
+                                 "/fix": ("sensor_msgs/msg/NavSatFix", fixes)})
+    imu, why = read_imu_topic(path)
+    assert why is None and len(imu) == 20 and imu.dropped["duplicate_stamp"] == 1
+    assert imu.source == f"{path}:/imu"
+    np.testing.assert_allclose(imu.gyro_radps[:, 2], 0.1 * np.arange(20))
+    np.testing.assert_allclose(imu.stamp_s - imu.stamp_s[0], np.arange(20) * 0.005, atol=1e-6)
+    gnss, why = read_gnss_topic(path)
+    assert why is None and len(gnss) == 3
+    assert gnss.dropped["no_fix"] == 1 and gnss.dropped["unknown_covariance"] == 1
+    np.testing.assert_allclose(gnss.sigma_h_m, 2.0)
+    np.testing.assert_allclose(gnss.sigma_v_m, 3.0)
+    assert "1 fixes without a fix (status < 0) and 1 with an unknown covariance" in caplog.text
+
+
+def test_bag_topics_of_imu_and_gnss_are_chosen_or_refused_by_name(tmp_path):
+    t0 = 1_700_000_000 * 10**9
+    msgs = [_imu_msg(t0 + k * 5_000_000, 0.0) for k in range(4)]
+    path = _bag(tmp_path / "b", {"/imu_a": ("sensor_msgs/msg/Imu", msgs),
+                                 "/imu_b": ("sensor_msgs/msg/Imu", msgs[:3])})
+    with pytest.raises(InputError, match="2 sensor_msgs/Imu topics .*pass --imu-topic.*--no-imu"):
+        read_imu_topic(path)
+    assert len(read_imu_topic(path, "/imu_b")[0]) == 3
+    with pytest.raises(InputError, match="no topic /nope"):
+        read_imu_topic(path, "/nope")
+    with pytest.raises(InputError, match="topic /imu_a is sensor_msgs/msg/Imu, not "
+                                         "sensor_msgs/NavSatFix"):
+        read_gnss_topic(path, "/imu_a")
+    assert read_gnss_topic(path) == (None, "no sensor_msgs/NavSatFix topic in the bag")
+
+
+def _sample_copy(tmp_path: Path) -> Path:
+    data = tmp_path / "seq"
+    shutil.copytree(REPO / "sample_scans", data)
+    return data
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_run_reports_the_imu_and_gnss_it_read_in_summary_json(tmp_path):
+    data = _sample_copy(tmp_path)
+    stamps = np.loadtxt(data / "times.txt")
+    n = int((stamps[-1] - stamps[0]) * 200) + 1
+    _write(data / "imu.csv", IMU_HEADER, _imu_rows(n, t0=stamps[0]).tolist())
+    _write(data / "gnss.csv", GNSS_HEADER, _gnss_rows(int(stamps[-1]) + 1, stamps[0]).tolist())
+    proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["imu"]["used"] and summary["imu"]["samples"] == n
+    assert summary["imu"]["rate_hz"] == pytest.approx(200, rel=1e-3)
+    assert summary["gnss"]["used"] and summary["gnss"]["source"] == str(data / "gnss.csv")
+    proc = _run(data, "--out", tmp_path / "o2", "--n-scans", "3", "--no-loops", "--no-imu",
+                "--no-gnss", "--imu-topic", "/imu")
+    assert proc.returncode == 0, proc.stderr
+    assert "--imu-topic /imu ignored" in proc.stderr
+    summary = json.loads((tmp_path / "o2" / "summary.json").read_text())
+    assert summary["imu"] == {"used": False, "reason": "off (--no-imu or imu.enabled: false)"}
+    assert not summary["gnss"]["used"]
+
+
+def test_run_with_an_unusable_imu_file_is_one_line_and_exit_2(tmp_path):
+    data = _sample_copy(tmp_path)
+    (data / "imu.csv").write_text("time,gx,gy,gz,ax,ay,az\n0,0,0,0,0,0,9.8\n")
+    proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(data / "imu.csv") in lines[0] and "header" in lines[0], lines
+    assert not (tmp_path / "o").exists()
+    # --no-imu reads around it
+    assert _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops",
+                "--no-imu").returncode == 0
+
+
+def test_imu_warnings_name_the_file(tmp_path, caplog):
+    caplog.set_level(logging.WARNING)
+    rows = _imu_rows().tolist()
+    rows[3][0] = rows[2][0]
+    read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
+    assert str(tmp_path / "imu.csv") in caplog.text
+
+
+def _cloud(stamp_ns: int, seed: int):
+    """A PointCloud2 of 3000 float32 x, y, z points on the walls of a 40 m box."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-20, 20, (3000, 3)).astype(np.float32)
+    pts[np.arange(3000), rng.integers(0, 2, 3000)] = rng.choice([-20, 20], 3000)
+    field = ROS2.types["sensor_msgs/msg/PointField"]
+    fields = [field(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")]
+    return ROS2.types["sensor_msgs/msg/PointCloud2"](
+        header=_header(stamp_ns), height=1, width=3000, fields=fields, is_bigendian=False,
+        point_step=12, row_step=36000, data=np.frombuffer(pts.tobytes(), np.uint8),
+        is_dense=True)
+
+
+def test_run_on_a_bag_names_the_imu_topic_it_read(tmp_path):
+    t0 = 1_700_000_000 * 10**9
+    imu = [_imu_msg(t0 + k * 5_000_000, 0.0) for k in range(80)]
+    path = _bag(tmp_path / "b", {
+        "/points": ("sensor_msgs/msg/PointCloud2", [_cloud(t0 + k * 10**8, 0) for k in range(3)]),
+        "/imu_a": ("sensor_msgs/msg/Imu", imu), "/imu_b": ("sensor_msgs/msg/Imu", imu)})
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 2 and "pass --imu-topic" in proc.stderr, proc.stderr
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--imu-topic", "/imu_b")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["imu"]["source"] == f"{path}:/imu_b" and summary["imu"]["samples"] == 80
+    assert summary["gnss"] == {"used": False, "reason": "no sensor_msgs/NavSatFix topic in the bag"}
+
+
+def test_a_bag_imu_on_another_clock_is_refused_when_named_and_left_out_when_picked(tmp_path):
+    t0 = 1_700_000_000 * 10**9
+    imu = [_imu_msg(k * 5_000_000, 0.0) for k in range(1, 80)]  # stamps from boot, not epoch
+    path = _bag(tmp_path / "b", {
+        "/points": ("sensor_msgs/msg/PointCloud2", [_cloud(t0 + k * 10**8, 0) for k in range(3)]),
+        "/imu": ("sensor_msgs/msg/Imu", imu)})
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--imu-topic", "/imu")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert f"{path}:/imu: IMU stamps 0.005..0.395 s do not overlap the scans'" in line, line
+    assert not (tmp_path / "o").exists()
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    assert f"{path}:/imu: not used: IMU stamps 0.005..0.395 s" in proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert not summary["imu"]["used"] and "do not overlap" in summary["imu"]["reason"]
+
+
+def test_the_ouster_bags_own_imu_on_the_sensor_clock_does_not_stop_a_lidar_run(rosbags_dir,
+                                                                              tmp_path):
+    """The shared Ouster recording stamps its clouds with the epoch and its sensor_msgs/Imu
+    with the sensor's clock (~1622 s): picked by itself, that IMU is left out with a warning."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((rosbags_dir / "ouster_os1_64_points_ros1_profile.mcap").read_bytes()[:2**21])
+    proc = _run(cut, "--out", tmp_path / "o", "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    assert f"{cut}:/os1_cloud_node/imu: not used: IMU stamps 1622" in proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["imu"]["used"] is False and summary["frames"] == 1
