@@ -141,13 +141,24 @@ UNITS = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m":
          "relocalise_ms_per_attempt": "ms"}
 
 
+# Of a nested summary entry with many fields, the ones the terminal table shows.
+SUMMARY_KEYS_SHOWN = ("used", "source", "samples", "rate_hz", "reason")
+
+
 def summary_table(summary: dict) -> str:
     """The run summary as an aligned two-column table, every number with its unit."""
     rows = []
     for key, value in summary.items():
         if value is None or value == {}:  # e.g. no topic, no git commit: summary.json only
             continue
-        text = f"{value:.4g}" if isinstance(value, float) else str(value)
+        if isinstance(value, float):
+            text = f"{value:.4g}"
+        elif isinstance(value, dict):  # e.g. imu / gnss: the gist here, the rest in the file
+            text = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                             for k, v in value.items() if k in SUMMARY_KEYS_SHOWN
+                             or not isinstance(v, (dict, list)) and len(value) <= 4)
+        else:
+            text = str(value)
         rows.append((key, f"{text} {UNITS.get(key, '')}".strip()))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

@@ -56,10 +56,13 @@ def _dir(run_dir: Path) -> Path:
 
 
 def describe_run(data: Path, start: int, n_scans: int | None, topic: str | None,
-                 cfg: SlamConfig) -> dict:
-    """What makes two runs the same run (for refusing a resume with other input or config)."""
+                 cfg: SlamConfig, imu_topic: str | None = None,
+                 gnss_topic: str | None = None) -> dict:
+    """What makes two runs the same run (for refusing a resume with other input or config);
+    the IMU / GNSS topics only when named (a lidar-only run's identity is as before)."""
+    named = {k: v for k, v in (("imu_topic", imu_topic), ("gnss_topic", gnss_topic)) if v}
     return {"version": CHECKPOINT_VERSION, "input": str(Path(data).resolve()), "start": start,
-            "n_scans": n_scans, "topic": topic, "config": cfg.model_dump(mode="json")}
+            "n_scans": n_scans, "topic": topic, "config": cfg.model_dump(mode="json"), **named}
 
 
 def start_run(run_dir: Path, run: dict) -> None:
