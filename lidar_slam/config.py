@@ -267,6 +267,12 @@ class ImuConfig(_Section):
 
     @model_validator(mode="after")
     def _extrinsic_is_rigid(self) -> ImuConfig:
+        # Six finite numbers are always a rigid transform: not built here, so that loading a
+        # config does not import scipy.spatial (start-up cost of every command).
+        if len(self.T_lidar_imu) == 6:
+            if not np.all(np.isfinite(self.T_lidar_imu)):
+                raise ValueError("T_lidar_imu must be finite (x y z m, roll pitch yaw deg)")
+            return self
         self.T_lidar_imu_matrix()
         return self
 
