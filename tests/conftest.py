@@ -95,3 +95,13 @@ def require_ray() -> None:
         if os.environ.get("LIDAR_SLAM_REQUIRE_RAY") == "1":
             pytest.fail(msg)
         pytest.skip(msg)
+
+
+def assert_one_line_error(proc, *needles):
+    """Exit code 2, no traceback, one error line (warnings about the input may come first)."""
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.startswith("WARNING")]
+    assert len(lines) == 1, proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_one_line_error
 
 from lidar_slam.io.trajectory import read_kitti_poses, read_tum
 
@@ -16,16 +17,6 @@ REPO = Path(__file__).resolve().parents[1]
 def lidar_slam(*args, timeout=600):
     return subprocess.run([sys.executable, "-m", "lidar_slam.cli", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout)
-
-
-def assert_one_line_error(proc, *needles):
-    """Exit code 2, no traceback, one error line (warnings about the input may come first)."""
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.startswith("WARNING")]
-    assert len(lines) == 1, proc.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 def test_missing_path(tmp_path):

@@ -154,9 +154,9 @@ def summary_table(summary: dict) -> str:
         if isinstance(value, float):
             text = f"{value:.4g}"
         elif isinstance(value, dict):  # e.g. imu / gnss: the gist here, the rest in the file
+            shown = {k: v for k, v in value.items() if k in SUMMARY_KEYS_SHOWN} or value
             text = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                             for k, v in value.items() if k in SUMMARY_KEYS_SHOWN
-                             or not isinstance(v, (dict, list)) and len(value) <= 4)
+                             for k, v in shown.items())
         else:
             text = str(value)
         rows.append((key, f"{text} {UNITS.get(key, '')}".strip()))
