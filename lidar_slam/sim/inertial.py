@@ -15,7 +15,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
-from lidar_slam.errors import RunFailed
+from lidar_slam.geo import enu_to_wgs84
 from lidar_slam.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -189,24 +189,6 @@ def write_imu(out: Path, imu: ImuData) -> None:
 
 # ----------------------------------------------------------------------------------------------
 # GNSS
-
-
-def enu_to_wgs84(enu_m: np.ndarray, datum: tuple[float, float, float]) -> np.ndarray:
-    """(N, 3) local ENU (m) at datum (lat deg, lon deg, h m) -> (N, 3) lat deg, lon deg, h m on
-    WGS84, through PROJ's topocentric conversion (exact, no flat-earth approximation)."""
-    try:
-        from pyproj import Transformer  # the geo extra
-    except ImportError as exc:
-        raise RunFailed("GNSS needs pyproj: pip install 'lidar-slam[geo]'") from exc
-
-    lat0, lon0, h0 = datum
-    pipe = ("+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad "
-            "+step +proj=cart +ellps=WGS84 "
-            f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat0!r} +lon_0={lon0!r} +h_0={h0!r}")
-    enu = np.atleast_2d(np.asarray(enu_m, dtype=float))
-    lon, lat, h = Transformer.from_pipeline(pipe).transform(
-        enu[:, 0], enu[:, 1], enu[:, 2], direction="INVERSE")
-    return np.c_[lat, lon, h]
 
 
 @dataclass(frozen=True)

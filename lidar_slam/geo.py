@@ -1,0 +1,54 @@
+"""The Earth: a local ENU frame (x east, y north, z up) at a datum on WGS84, through PROJ
+(pyproj, the `geo` extra; imported only when used). Exact topocentric conversions, no flat-earth
+approximation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidar_slam.errors import RunFailed
+
+
+def _transformer(lat0: float, lon0: float, h0: float):
+    try:
+        from pyproj import Transformer  # the geo extra
+    except ImportError as exc:
+        raise RunFailed("GNSS needs pyproj: pip install 'lidar-slam[geo]'") from exc
+    pipe = ("+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad "
+            "+step +proj=cart +ellps=WGS84 "
+            f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat0!r} +lon_0={lon0!r} +h_0={h0!r}")
+    return Transformer.from_pipeline(pipe)
+
+
+@dataclass(frozen=True)
+class LocalEnu:
+    """The ENU frame whose origin is the datum (lat deg, lon deg, ellipsoidal height m)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+    @property
+    def datum(self) -> tuple[float, float, float]:
+        return (self.lat_deg, self.lon_deg, self.alt_m)
+
+    def to_wgs84(self, enu_m: np.ndarray) -> np.ndarray:
+        """(N, 3) ENU (m) -> (N, 3) lat deg, lon deg, ellipsoidal height m."""
+        enu = np.atleast_2d(np.asarray(enu_m, dtype=float))
+        lon, lat, h = _transformer(*self.datum).transform(enu[:, 0], enu[:, 1], enu[:, 2],
+                                                          direction="INVERSE")
+        return np.c_[lat, lon, h]
+
+    def from_wgs84(self, lat_lon_h: np.ndarray) -> np.ndarray:
+        """(N, 3) lat deg, lon deg, ellipsoidal height m -> (N, 3) ENU (m)."""
+        llh = np.atleast_2d(np.asarray(lat_lon_h, dtype=float))
+        e, n, u = _transformer(*self.datum).transform(llh[:, 1], llh[:, 0], llh[:, 2])
+        return np.c_[e, n, u]
+
+
+def enu_to_wgs84(enu_m: np.ndarray, datum: tuple[float, float, float]) -> np.ndarray:
+    """(N, 3) local ENU (m) at datum (lat deg, lon deg, h m) -> (N, 3) lat deg, lon deg, h m."""
+    return LocalEnu(*datum).to_wgs84(enu_m)

@@ -1,0 +1,131 @@
+"""gtsam's IMU preintegration between any two instants: the one home for the front-end (IMU
+deskew and prediction) and the back-end (IMU factors between keyframes).
+
+Conventions: the samples are in the IMU frame (angular rate rad/s, specific force m/s^2, gravity
+included: ~+9.81 on z at rest with z up), on the scans' clock (io.inertial_input applied the
+config's time offset). The world of every IMU state is gravity-aligned with z up, gravity
+(0, 0, -GRAVITY_MPS2): gtsam's PreintegrationCombinedParams.MakeSharedU. Between two sample
+stamps the measurement is the mean of the two samples (trapezoid), and an interval's ends
+between samples are linearly interpolated: the convention the simulator's IMU is checked with
+(tests/test_sim_imu.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from lidar_slam.config import ImuConfig
+from lidar_slam.io.inertial import ImuSamples
+
+GRAVITY_MPS2 = 9.81
+# Covariance of the integration of velocity into position (m^2/s^2 * s), gtsam's own knob for
+# the error of the discrete integration; small for 100-400 Hz samples.
+INTEGRATION_COVARIANCE = 1e-8
+# Covariance of the bias used while preintegrating (gtsam's biasAccOmegaInt), when the params
+# have it.
+BIAS_ACC_OMEGA_INT = 1e-5
+
+
+def combined_params(cfg: ImuConfig) -> gtsam.PreintegrationCombinedParams:
+    """gtsam's parameters for PreintegratedCombinedMeasurements from the config's noise densities
+    and bias random walks (continuous time; gtsam takes their squares as covariances)."""
+    p = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY_MPS2)
+    p.setGyroscopeCovariance(np.eye(3) * cfg.gyro_noise_density ** 2)
+    p.setAccelerometerCovariance(np.eye(3) * cfg.accel_noise_density ** 2)
+    p.setIntegrationCovariance(np.eye(3) * INTEGRATION_COVARIANCE)
+    p.setBiasOmegaCovariance(np.eye(3) * cfg.gyro_bias_random_walk ** 2)
+    p.setBiasAccCovariance(np.eye(3) * cfg.accel_bias_random_walk ** 2)
+    if hasattr(p, "setBiasAccOmegaInit"):  # gtsam 4.2 names it so; 4.3 has no setter
+        p.setBiasAccOmegaInit(np.eye(6) * BIAS_ACC_OMEGA_INT)
+    return p
+
+
+@dataclass(frozen=True)
+class Interval:
+    """The measurements over [t0, t1] as gtsam integrates them: per step its duration (s) and
+    the mean angular rate and specific force over it (IMU frame). covered: whether the samples
+    span the whole interval (ends outside them hold the first / last sample)."""
+
+    dt_s: np.ndarray
+    gyro_radps: np.ndarray
+    accel_mps2: np.ndarray
+    covered: bool
+
+
+class ImuStream:
+    """IMU samples with interpolation at any instant and preintegration between any two."""
+
+    def __init__(self, samples: ImuSamples):
+        if len(samples) < 2:
+            raise ValueError("an IMU stream needs at least two samples")
+        self.samples = samples
+        self.t = np.asarray(samples.stamp_s, dtype=np.float64)
+        self._values = np.c_[samples.gyro_radps, samples.accel_mps2].astype(np.float64)
+
+    @property
+    def start_s(self) -> float:
+        return float(self.t[0])
+
+    @property
+    def end_s(self) -> float:
+        return float(self.t[-1])
+
+    def at(self, times_s: np.ndarray) -> np.ndarray:
+        """(N, 6) angular rate and specific force linearly interpolated at times_s (held past
+        the ends)."""
+        times_s = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
+        return np.stack([np.interp(times_s, self.t, self._values[:, j]) for j in range(6)],
+                        axis=1)
+
+    def interval(self, t0_s: float, t1_s: float) -> Interval:
+        """The steps between t0_s and t1_s (t1_s >= t0_s): the sample stamps inside, with the
+        interpolated measurement at both ends."""
+        if t1_s < t0_s:
+            raise ValueError(f"interval ends before it starts: {t0_s} > {t1_s}")
+        i0, i1 = np.searchsorted(self.t, [t0_s, t1_s], side="right")
+        knots = np.r_[t0_s, self.t[i0:i1], t1_s]
+        knots = knots[np.r_[True, np.diff(knots) > 0]]  # a sample exactly at t0_s
+        if len(knots) < 2:
+            knots = np.array([t0_s, t1_s])
+        values = self.at(knots)
+        mean = 0.5 * (values[:-1] + values[1:])
+        covered = bool(self.t[0] <= t0_s and t1_s <= self.t[-1])
+        return Interval(np.diff(knots), mean[:, :3], mean[:, 3:], covered)
+
+    def preintegrate(self, t0_s: float, t1_s: float, params: gtsam.PreintegrationCombinedParams,
+                     bias: gtsam.imuBias.ConstantBias | None = None
+                     ) -> gtsam.PreintegratedCombinedMeasurements:
+        """gtsam's preintegrated measurements from t0_s to t1_s about `bias` (zero if None)."""
+        pim = gtsam.PreintegratedCombinedMeasurements(
+            params, gtsam.imuBias.ConstantBias() if bias is None else bias)
+        iv = self.interval(t0_s, t1_s)
+        for dt, w, a in zip(iv.dt_s, iv.gyro_radps, iv.accel_mps2):
+            if dt > 0:
+                pim.integrateMeasurement(a, w, float(dt))
+        return pim
+
+    def gravity_rotation(self, t0_s: float, t1_s: float) -> np.ndarray:
+        """R_world_imu (3x3) that turns the mean specific force over [t0_s, t1_s] to +z (roll
+        and pitch from gravity, the smallest such rotation): right when the IMU is at rest or
+        moves without net acceleration over the interval."""
+        iv = self.interval(t0_s, t1_s)
+        mean = (iv.accel_mps2 * iv.dt_s[:, None]).sum(axis=0) / max(iv.dt_s.sum(), 1e-12)
+        if not iv.dt_s.sum() > 0:
+            mean = self.at([t0_s])[0, 3:]
+        return gravity_rotation(mean)
+
+
+def gravity_rotation(specific_force: np.ndarray) -> np.ndarray:
+    """R_world_imu (3x3), the smallest rotation taking the direction of specific_force (IMU frame)
+    to +z of a z-up world."""
+    f = np.asarray(specific_force, dtype=np.float64)
+    norm = float(np.linalg.norm(f))
+    if not np.isfinite(norm) or norm < 1e-6:
+        raise ValueError("no specific force to align with gravity")
+    from scipy.spatial.transform import Rotation  # scipy.spatial only when used
+
+    R, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [f / norm])
+    return R.as_matrix()
