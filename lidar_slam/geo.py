@@ -52,3 +52,23 @@ class LocalEnu:
 def enu_to_wgs84(enu_m: np.ndarray, datum: tuple[float, float, float]) -> np.ndarray:
     """(N, 3) local ENU (m) at datum (lat deg, lon deg, h m) -> (N, 3) lat deg, lon deg, h m."""
     return LocalEnu(*datum).to_wgs84(enu_m)
+
+
+@dataclass(frozen=True)
+class GeoReference:
+    """Where a run's map frame lies on the Earth: T_enu_map (4x4) takes map-frame points (the
+    frame of poses_kitti.txt, map.ply and the keyframes: the first scan's) into the ENU frame
+    `enu` (whose datum is a WGS84 point near the run, e.g. its first GNSS fix). Set by the
+    back-end when GNSS is used (lidar_slam.backend); outputs and export read it."""
+
+    enu: LocalEnu
+    T_enu_map: np.ndarray
+
+    def map_to_enu(self, points_map: np.ndarray) -> np.ndarray:
+        """(N, 3) map-frame points (m) -> (N, 3) ENU (m)."""
+        p = np.atleast_2d(np.asarray(points_map, dtype=float))
+        return p @ self.T_enu_map[:3, :3].T + self.T_enu_map[:3, 3]
+
+    def map_to_wgs84(self, points_map: np.ndarray) -> np.ndarray:
+        """(N, 3) map-frame points (m) -> (N, 3) lat deg, lon deg, ellipsoidal height m."""
+        return self.enu.to_wgs84(self.map_to_enu(points_map))
