@@ -147,6 +147,10 @@ class GeoReference:
         """EPSG code of the UTM zone of the ENU datum (32632: WGS 84 / UTM zone 32N)."""
         return self.enu.utm_epsg
 
+    def utm_crs(self):
+        """The pyproj CRS of utm_epsg (WGS 84 / UTM zone N)."""
+        return _pyproj().CRS.from_epsg(self.utm_epsg)
+
     @property
     def origin_wgs84(self) -> tuple[float, float, float]:
         """The map frame's origin: lat deg, lon deg, ellipsoidal height m."""
