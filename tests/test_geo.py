@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from conftest import shared_path
+
 from lidar_slam.geo import GeoReference, LocalEnu, utm_epsg, utm_to_wgs84, wgs84_to_utm
 from lidar_slam.io.trajectory import read_kitti_poses
 
