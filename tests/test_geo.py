@@ -131,7 +131,7 @@ def test_las_export_of_a_geo_run_is_utm_with_its_epsg_on_the_simulated_world(geo
 
     from lidar_slam.sim import sequence_world
 
-    proc = lidar_slam("export", geo_run.geo, "--out", tmp_path / "map.laz", "--voxel", "0.5")
+    proc = lidar_slam("export", geo_run.geo, "--out", tmp_path / "map.laz")
     assert proc.returncode == 0, proc.stderr
     las = laspy.read(tmp_path / "map.laz")
     crs = las.header.parse_crs()
