@@ -217,3 +217,12 @@ def test_a_damaged_geo_section_is_one_line(geo_run, tmp_path):
     (run / "summary.json").write_text(json.dumps(summary))
     proc = lidar_slam("export", run, "--out", tmp_path / "map.las")
     assert_one_line_error(proc, "summary.json", "T_enu_map")
+
+
+def test_overwrite_removes_the_geo_outputs_of_an_earlier_run(tmp_path):
+    from lidar_slam.run.outdir import RUN_OUTPUTS, prepare_out_dir
+
+    for name in (*GEO_FILES, "poses_kitti.txt", "notes.txt"):
+        (tmp_path / name).write_text("x\n")
+    prepare_out_dir(tmp_path, RUN_OUTPUTS, overwrite=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
