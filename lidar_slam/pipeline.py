@@ -17,6 +17,7 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
 from lidar_slam.frontend.keyframes import KeyframeSelector
 from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
+from lidar_slam.geo import GeoReference
 from lidar_slam.geometry import inverse, transform_points
 from lidar_slam.loop import adapt
 from lidar_slam.map.keyframes import KeyframeStore
@@ -49,6 +50,7 @@ class RunResult:
     backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
     # slow scans refined against the last keyframes, and refinements refused (see odometry)
     refined_scans: tuple[int, int] = (0, 0)
+    geo: GeoReference | None = None  # where the map frame lies on the Earth (with GNSS)
 
     def final_poses(self) -> np.ndarray:
         """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""

@@ -55,7 +55,8 @@ def export(
     """Export a run's map: points as PLY / PCD / LAS / LAZ, or an occupancy grid.
 
     Points are the keyframe clouds placed with the final poses (the frame of poses_kitti.txt),
-    with intensity and the id of their keyframe.
+    with intensity and the id of their keyframe. A run with GNSS gives LAS / LAZ in UTM
+    (easting, northing, ellipsoidal height) with the CRS, and a map.yaml with its geo origin.
     """
     from lidar_slam.map.saved import open_map
 

@@ -2,7 +2,13 @@
 writer) or LAS / LAZ (laspy, the only module that imports it), with intensity and the id of the
 keyframe each point
 comes from. Points are the keyframe clouds as the run stored them, placed with the final poses in
-the map frame (the frame of the run's poses_kitti.txt); --voxel keeps the first of each voxel."""
+the map frame (the frame of the run's poses_kitti.txt); --voxel keeps the first of each voxel.
+
+A run with GNSS (a geo reference, lidar_slam.geo) gives LAS / LAZ in UTM instead: easting,
+northing (m) in the zone of the ENU datum and the ellipsoidal height (m), with the CRS (WGS 84 /
+UTM zone N as WKT, its EPSG code 326NN / 327NN) in the header, so GIS tools place the cloud on a
+map. PLY and PCD (float32 coordinates: millimetres would be lost at UTM magnitudes) stay in the
+map frame."""
 
 from __future__ import annotations
 
@@ -15,6 +21,7 @@ import numpy as np
 
 from lidar_slam.errors import LidarSlamError
 from lidar_slam.frontend.downsample import voxel_first_indices
+from lidar_slam.geo import GeoReference
 from lidar_slam.io.atomic import atomic_path
 from lidar_slam.io.ply import write_ply
 from lidar_slam.map.saved import SavedMap
@@ -39,11 +46,13 @@ LASPY_HINT = "LAS/LAZ export needs laspy: pip install 'laspy[lazrs]' (or 'lidar-
 @dataclass(frozen=True)
 class MapPoints:
     """points (N, 3) float64 map frame metres; intensity (N,) float32 (zeros when the scans
-    had none); keyframe (N,) uint32 id of the keyframe each point comes from."""
+    had none); keyframe (N,) uint32 id of the keyframe each point comes from; geo: the map's
+    geo reference (LAS / LAZ are then written in UTM), or None."""
 
     points: np.ndarray
     intensity: np.ndarray
     keyframe: np.ndarray
+    geo: GeoReference | None = None
 
 
 def map_points(saved_map: SavedMap, voxel_m: float | None = None) -> MapPoints:
@@ -58,12 +67,14 @@ def map_points(saved_map: SavedMap, voxel_m: float | None = None) -> MapPoints:
         inten.append(np.zeros(len(p), np.float32) if i is None else i.astype(np.float32))
         kf.append(np.full(len(p), k, np.uint32))
     if not pts:
-        return MapPoints(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.uint32))
-    out = MapPoints(np.concatenate(pts), np.concatenate(inten), np.concatenate(kf))
+        return MapPoints(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.uint32),
+                         saved_map.geo)
+    out = MapPoints(np.concatenate(pts), np.concatenate(inten), np.concatenate(kf),
+                    saved_map.geo)
     if voxel_m is None:
         return out
     keep = voxel_first_indices(out.points, voxel_m)
-    return MapPoints(out.points[keep], out.intensity[keep], out.keyframe[keep])
+    return MapPoints(out.points[keep], out.intensity[keep], out.keyframe[keep], out.geo)
 
 
 def format_of(path: Path, fmt: PointFormat | None) -> PointFormat:
@@ -78,7 +89,8 @@ def format_of(path: Path, fmt: PointFormat | None) -> PointFormat:
 
 
 def write_points(path: Path, fmt: PointFormat, mp: MapPoints) -> int:
-    """Write mp to path (atomically) in fmt; returns the number of points written."""
+    """Write mp to path (atomically) in fmt; returns the number of points written. LAS / LAZ
+    of a map with a geo reference are in UTM (see the module doc)."""
     if fmt in (PointFormat.las, PointFormat.laz):
         _write_las(path, mp, compressed=fmt == PointFormat.laz)
     elif fmt == PointFormat.ply:
@@ -127,10 +139,15 @@ def _write_las(path: Path, mp: MapPoints, compressed: bool) -> None:
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.add_extra_dim(laspy.ExtraBytesParams(name="keyframe", type=np.uint32,
                                                 description="lidar-slam keyframe id"))
+    xyz = mp.points
+    if mp.geo is not None:
+        xyz = mp.geo.map_to_utm(mp.points) if len(mp.points) else mp.points
+        header.add_crs(mp.geo.utm_crs())
     header.scales = np.array([0.001, 0.001, 0.001])  # mm
-    header.offsets = np.floor(mp.points.min(axis=0)) if len(mp.points) else np.zeros(3)
+    # Offsets at the data's lower corner: 32-bit mm counts then reach 2147 km from it.
+    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
     las = laspy.LasData(header)
-    las.x, las.y, las.z = mp.points[:, 0], mp.points[:, 1], mp.points[:, 2]
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     las.intensity = las_intensity(mp.intensity)
     las.keyframe = mp.keyframe
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:

@@ -11,7 +11,9 @@ one bearing cover each other). Hits and passes are combined per cell in log-odds
 ray reached stay unknown.
 
 The grid lies in the map frame's x-y plane (the frame of the run's poses_kitti.txt, whose z is
-the first scan's sensor axis: level for a vehicle-mounted lidar).
+the first scan's sensor axis: level for a vehicle-mounted lidar). A run with GNSS also gets
+map.yaml's `geo` keys (map_server ignores them): the map frame's origin in WGS84, the compass
+heading of its x axis, and the image's lower-left corner in UTM (see write_map_server).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import LidarSlamError
+from lidar_slam.geo import GeoReference
 from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.map.saved import SavedMap
 from lidar_slam.registration import level_ground
@@ -54,11 +57,13 @@ class OccupancyParams:
 @dataclass(frozen=True)
 class OccupancyGrid:
     """state (rows, cols) int8 UNKNOWN / FREE / OCCUPIED; row 0 at origin_xy[1] (the lowest
-    y), column 0 at origin_xy[0]; origin_xy: map-frame corner of cell (0, 0), metres."""
+    y), column 0 at origin_xy[0]; origin_xy: map-frame corner of cell (0, 0), metres; geo: the
+    map's geo reference, or None."""
 
     state: np.ndarray
     resolution_m: float
     origin_xy: np.ndarray
+    geo: GeoReference | None = None
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rows, cols) of map-frame points (N, 2); may lie outside the grid."""
@@ -195,7 +200,7 @@ def build_grid(saved_map: SavedMap, params: OccupancyParams = OccupancyParams()
     seen = (hits + free) > 0
     state[seen & (p > params.occupied_thresh)] = OCCUPIED
     state[seen & (p < params.free_thresh)] = FREE
-    grid = OccupancyGrid(state.reshape(shape), res, origin_xy)
+    grid = OccupancyGrid(state.reshape(shape), res, origin_xy, saved_map.geo)
     log.info("occupancy grid %d x %d: %d occupied, %d free cells", shape[1], shape[0],
              int((state == OCCUPIED).sum()), int((state == FREE).sum()))
     return grid
@@ -204,7 +209,8 @@ def build_grid(saved_map: SavedMap, params: OccupancyParams = OccupancyParams()
 def write_map_server(grid: OccupancyGrid, out_dir: Path, params: OccupancyParams,
                      name: str = "map") -> tuple[Path, Path]:
     """NAME.png (trinary: 0 occupied, 254 free, 205 unknown; top row = highest y) and NAME.yaml
-    (image, mode, resolution, origin, negate, thresholds), both written atomically."""
+    (image, mode, resolution, origin, negate, thresholds; with a geo reference also `geo`, see
+    geo_yaml), both written atomically."""
     from PIL import Image
 
     image = np.full(grid.state.shape, PNG_VALUE[UNKNOWN], np.uint8)
@@ -219,5 +225,20 @@ def write_map_server(grid: OccupancyGrid, out_dir: Path, params: OccupancyParams
         "# poses_kitti.txt frame; origin: map-frame pose of the lower-left pixel (x, y, yaw)\n"
         f"image: {png.name}\nmode: trinary\nresolution: {grid.resolution_m:g}\n"
         f"origin: [{x0:.6f}, {y0:.6f}, 0.0]\nnegate: 0\n"
-        f"occupied_thresh: {params.occupied_thresh:g}\nfree_thresh: {params.free_thresh:g}\n"))
+        f"occupied_thresh: {params.occupied_thresh:g}\nfree_thresh: {params.free_thresh:g}\n"
+        + ("" if grid.geo is None else geo_yaml(grid))))
     return png, yaml_path
+
+
+def geo_yaml(grid: OccupancyGrid) -> str:
+    """map.yaml's `geo` mapping: the map frame's origin (WGS84 lat, lon deg, ellipsoidal height
+    m), the compass heading of its x axis (deg clockwise from true north), the UTM zone's EPSG
+    code and the lower-left image corner (map-frame z = 0) in UTM (easting, northing, height m)."""
+    lat, lon, alt = grid.geo.origin_wgs84
+    x0, y0 = (float(v) for v in grid.origin_xy)
+    corner = grid.geo.map_to_utm(np.array([x0, y0, 0.0]))[0]
+    return ("# geo: where the map frame lies on the Earth (lidar-slam's keys, not map_server's)\n"
+            f"geo:\n  origin_lat_deg: {lat:.9f}\n  origin_lon_deg: {lon:.9f}\n"
+            f"  origin_alt_m: {alt:.4f}\n  heading_deg: {grid.geo.heading_deg:.6f}\n"
+            f"  utm_epsg: {grid.geo.utm_epsg}\n"
+            f"  image_origin_utm: [{corner[0]:.3f}, {corner[1]:.3f}, {corner[2]:.3f}]\n")

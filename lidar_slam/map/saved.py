@@ -14,6 +14,7 @@ import numpy as np
 
 from lidar_slam.config import LocalizeConfig, SlamConfig, load_config, overlay_config
 from lidar_slam.errors import InputError
+from lidar_slam.geo import GeoReference
 from lidar_slam.geometry import inverse, rotation_angle_deg, transform_points
 from lidar_slam.io.trajectory import read_tum
 from lidar_slam.loop import adapt
@@ -30,7 +31,8 @@ class SavedMap:
     run's poses_kitti.txt); frame_index (K,): the input frame of each keyframe; counts (K,):
     points per keyframe cloud; cfg: the run's effective config. prediction_error_m / _deg: the
     largest miss of the constant-velocity prediction along the run's own poses (0 when they
-    are not there), see prediction_errors."""
+    are not there), see prediction_errors. geo: where the map frame lies on the Earth (a run
+    with GNSS: summary.json's `geo`), else None."""
 
     run_dir: Path
     cfg: SlamConfig
@@ -43,6 +45,7 @@ class SavedMap:
     _reader: KeyframeReader
     prediction_error_m: float = 0.0
     prediction_error_deg: float = 0.0
+    geo: GeoReference | None = None
 
     def __len__(self) -> int:
         return len(self.T_map_kf)
@@ -167,9 +170,12 @@ def open_map(run_dir: str | Path, overlay: str | Path | None = None) -> SavedMap
     # The map run's "auto" loop settings, as it fixed them (summary.json), else from its first
     # keyframe cloud (lidar_slam.loop.adapt).
     try:
-        auto = json.loads((root / "summary.json").read_text()).get("auto_settings")
+        summary = json.loads((root / "summary.json").read_text())
     except (OSError, ValueError):
-        auto = None
+        summary = {}
+    summary = summary if isinstance(summary, dict) else {}
+    auto = summary.get("auto_settings")
+    geo = _geo_reference(root / "summary.json", summary.get("geo"))
     reader = KeyframeReader(kf_dir)
     if auto is None or not adapt.covers(cfg, auto):  # (older runs fixed fewer of them)
         auto = {**adapt.auto_values(cfg, reader.get(0).points if n else None), **(auto or {})}
@@ -178,4 +184,14 @@ def open_map(run_dir: str | Path, overlay: str | Path | None = None) -> SavedMap
     return SavedMap(root, cfg, T_map_kf, table["frame_index"].copy(), table["count"].copy(),
                     bool(n) and bool(table["has_intensity"].all()),
                     None if desc is None else kf_dir / desc, int(info.get("descriptor_rows", 0)),
-                    reader, err_m, err_deg)
+                    reader, err_m, err_deg, geo)
+
+
+def _geo_reference(path: Path, section: dict | None) -> GeoReference | None:
+    """The run's geo reference from its summary.json `geo` section (None without one)."""
+    if section is None:
+        return None
+    try:
+        return GeoReference.from_dict(section)
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None

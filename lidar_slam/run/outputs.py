@@ -13,6 +13,7 @@ import numpy as np
 from lidar_slam.config import SlamConfig, dump_config
 from lidar_slam.eval import metrics
 from lidar_slam.eval.evaluate import run_summary_metrics
+from lidar_slam.geo import GeoReference
 from lidar_slam.geometry import inverse
 from lidar_slam.io.atomic import atomic_path, write_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
@@ -89,6 +90,21 @@ def read_covariances(path: Path) -> dict[int, np.ndarray]:
     return out
 
 
+def write_geo_poses(out_dir: Path, geo: GeoReference, frames: np.ndarray, stamps_s: np.ndarray,
+                    T_map_lidar: np.ndarray) -> dict:
+    """With a geo reference (GNSS): poses_enu.txt (T_enu_lidar per frame, 12 numbers a line as
+    poses_kitti.txt, ENU at geo.enu's datum) and poses_wgs84.csv (frame, stamp_s, lat_deg,
+    lon_deg, alt_m: the lidar's origin, ellipsoidal height); returns summary.json's `geo`."""
+    T_enu_lidar = geo.T_enu_map @ T_map_lidar
+    write_kitti_poses(out_dir / "poses_enu.txt", T_enu_lidar)
+    llh = geo.enu.to_wgs84(T_enu_lidar[:, :3, 3])
+    with atomic_path(out_dir / "poses_wgs84.csv") as tmp:
+        np.savetxt(tmp, np.c_[frames, stamps_s, llh], delimiter=",", comments="",
+                   fmt=["%d", "%.9f", "%.10f", "%.10f", "%.4f"],
+                   header="frame,stamp_s,lat_deg,lon_deg,alt_m")
+    return geo.to_dict()
+
+
 class OdometryStream:
     """odometry_kitti.txt written while the run goes, one line per frame (line-buffered: every
     line reaches the file as one write), so even a killed run (SIGKILL, out of memory) keeps its
@@ -135,6 +151,9 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         write_map_manifest(result.store, T_map_kf, cfg)
         if result.kf_covariances:
             write_covariances(out_dir / "covariances.csv", result)
+        if result.geo is not None:
+            summary["geo"] = write_geo_poses(out_dir, result.geo, np.asarray(result.indices),
+                                             stamps, poses)
         summary["path_length_m"] = metrics.path_length_m(poses)
         if ground_truth is not None:
             gt = ground_truth[np.asarray(result.indices)]
