@@ -578,8 +578,8 @@ def prepare_rko_lio(rows: dict[str, Row], seq: Sequence, seq_dir: Path) -> None:
     print(f"{seq.name}: wrote rko_lio's input in {time.perf_counter() - t0:.1f} s", flush=True)
     row.notes.append("input written once beforehand (untimed) in rko_lio's raw format: "
                      "lidar/<stamp ns>.ply, imu.csv, transforms.yaml (base = lidar frame); its "
-                     "own defaults otherwise, so it starts at zero velocity (its "
-                     "initialization_phase assumes a start at rest: off)")
+                     "own defaults otherwise (initialization_phase off: it would assume a start "
+                     "at rest)")
     stated = readme_extrinsic(seq.path)
     used = load_config(seq.config).imu.T_lidar_imu_matrix()
     if stated is not None and not np.allclose(stated, used, atol=1e-6):
