@@ -256,10 +256,11 @@ class ImuConfig(_Section):
     T_lidar_imu: list[float] = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     # Added to every IMU stamp to put it on the clock of the scan stamps (s).
     time_offset_s: float = 0.0
-    # Continuous-time noise of a BMI088-class MEMS unit. Densities from the BMI088 datasheet
-    # (BST-BMI088-DS001): gyro 0.014 deg/s/sqrt(Hz) = 2.4e-4 rad/s/sqrt(Hz), accelerometer
-    # 175 ug/sqrt(Hz) = 1.7e-3 m/s^2/sqrt(Hz). The datasheet gives no bias random walk; these
-    # are the usual order for such units (to be calibrated, e.g. by an Allan variance).
+    # Continuous-time noise of a BMI088-class MEMS unit (BST-BMI088-DS001): gyro 0.014
+    # deg/s/sqrt(Hz) = 2.4e-4 rad/s/sqrt(Hz) (the datasheet's typical value as Bosch's forum
+    # quotes it); accelerometer 175 ug/sqrt(Hz) = 1.7e-3 m/s^2/sqrt(Hz), UNVERIFIED (only
+    # third-party code quotes it; the datasheet's table was not found). No bias random walk in
+    # the datasheet: these are the usual order for such units (calibrate, e.g. Allan variance).
     gyro_noise_density: Positive = 2.4e-4  # rad/s/sqrt(Hz)
     accel_noise_density: Positive = 1.7e-3  # m/s^2/sqrt(Hz)
     gyro_bias_random_walk: Positive = 2.0e-5  # rad/s^2/sqrt(Hz)

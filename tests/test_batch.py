@@ -411,3 +411,75 @@ def test_a_signal_to_the_group_stops_an_embedded_batch_and_keeps_its_table(input
     again = lidar_slam("batch", *args, "--out", out)
     assert again.returncode == 0, again.stderr
     assert [r["status"] for r in read_table(out)] == ["ok"] * 4
+
+
+OUSTER_BAG = REPO.parent / "shared" / "data" / "rosbags" / "ouster_os1_64_points_ros1_profile.mcap"
+OUSTER_IMU = "/os1_cloud_node/imu"
+
+
+@pytest.fixture(scope="module")
+def ouster_imu_offset() -> float:
+    """The Ouster sample's IMU is stamped by the sensor's clock: the offset onto the clouds'."""
+    from lidar_slam.io import rosbag
+    from lidar_slam.io.sources import open_source
+
+    if not OUSTER_BAG.is_file():
+        pytest.skip(f"{OUSTER_BAG} is not here")
+    imu, _ = rosbag.read_imu_topic(OUSTER_BAG, OUSTER_IMU)
+    return float(open_source(OUSTER_BAG).stamps[0] - imu.stamp_s[0])
+
+
+def test_batch_jobs_read_the_imu_topic_and_switches_as_run_does(ouster_imu_offset, tmp_path):
+    """A job names the IMU topic of its bag as `run --imu-topic` does (the clock offset from
+    the config), is skipped as finished when re-run with it, and --no-imu switches it off."""
+    from lidar_slam.batch import BatchJob, run_job
+    from lidar_slam.cli.run import run_overrides
+
+    cfg = tmp_path / "offset.yaml"
+    cfg.write_text(f"imu:\n  time_offset_s: {ouster_imu_offset!r}\n")
+    job = BatchJob("bag", str(OUSTER_BAG), str(tmp_path / "bag"), str(cfg),
+                   imu_topic=OUSTER_IMU)
+    res = run_job(job)
+    assert res.row["status"] == "ok", res.row
+    imu = json.loads((tmp_path / "bag" / "summary.json").read_text())["imu"]
+    assert imu["used"] and OUSTER_IMU in imu["source"] and imu["samples"] == 17, imu
+    assert run_job(job).row["message"] == "finished earlier: skipped"
+    # another IMU topic is another run: not skipped (here: no such topic, an error row)
+    res = run_job(BatchJob("bag", str(OUSTER_BAG), str(tmp_path / "bag"), str(cfg),
+                           imu_topic="/no/such/imu"))
+    assert res.row["status"] == "error" and "/no/such/imu" in res.row["message"], res.row
+    # the topic named without the offset: the run's own one-line error, as an error row
+    res = run_job(BatchJob("bag", str(OUSTER_BAG), str(tmp_path / "bad"), imu_topic=OUSTER_IMU))
+    assert res.row["status"] == "error" and "IMU stamps" in res.row["message"], res.row
+    off = BatchJob("bag", str(OUSTER_BAG), str(tmp_path / "off"), str(cfg),
+                   overrides=run_overrides(False, False, no_imu=True, no_gnss=True))
+    assert run_job(off).row["status"] == "ok"
+    summary = json.loads((tmp_path / "off" / "summary.json").read_text())
+    assert not summary["imu"]["used"] and not summary["gnss"]["used"]
+
+
+def test_batch_command_gives_every_job_the_imu_and_gnss_options(monkeypatch, tmp_path):
+    """`batch --imu-topic T --gnss-topic G --no-gnss` reaches every job like `run`'s flags."""
+    from typer.testing import CliRunner
+
+    import lidar_slam.batch
+    from lidar_slam.batch.runner import BatchReport
+    from lidar_slam.cli import app
+
+    require_ray()
+    seen = []
+
+    def capture(jobs, out_dir, fleet, interval_s, meta=None):  # the jobs, not run (no Ray)
+        seen.extend(jobs)
+        return BatchReport([], [], 0.0, False)
+
+    monkeypatch.setattr(lidar_slam.batch, "run_batch", capture)
+    monkeypatch.setattr("lidar_slam.batch.results.as_markdown", lambda rows: "")
+    res = CliRunner().invoke(app, ["batch", str(SAMPLE), str(OUSTER_BAG), "--out",
+                                   str(tmp_path / "o"), "--imu-topic", OUSTER_IMU,
+                                   "--gnss-topic", "/fix", "--no-gnss"])
+    assert res.exit_code == 0, res.output
+    assert len(seen) == 2
+    for job in seen:
+        assert (job.imu_topic, job.gnss_topic) == (OUSTER_IMU, "/fix")
+        assert job.overrides["gnss"] == {"enabled": False} and "imu" not in job.overrides

@@ -1,10 +1,10 @@
-"""Side by side: lidar-slam, stock KISS-ICP and stock KISS-SLAM on the same scans, one table.
+"""Side by side: lidar-slam, stock KISS-ICP, KISS-SLAM and rko_lio on the same scans, one table.
 
 Usage: python tools/benchmark.py SEQ [SEQ ...] --out DIR [--repeats N]
-       [--config-for SEQNAME=FILE ...] [--systems lidar-slam,kiss-icp,kiss-slam]
+       [--config-for SEQNAME=FILE ...] [--systems lidar-slam,kiss-icp,kiss-slam,rko-lio]
        [--start N] [--n-scans N]
 
-Every system runs as its own process on the scans lidar_slam's readers produce (so all three see
+Every system runs as its own process on the scans lidar_slam's readers produce (so all see
 identical points; no KITTI vertical correction unless a lidar-slam config asks for it). Cost is
 whole-process: wall time and peak RSS from os.wait4's rusage; frames/s = frames / median wall time
 over the repeats (interleaved, so every system sees the same machine load), peak MB = max over the
@@ -17,6 +17,15 @@ the
 same t_err, r_err, ATE and counts as a batch's results table), and its runs also get that table,
 DIR/lidar-slam/results.{md,json,csv}, so a benchmark and a batch can be compared row by row.
 
+rko_lio (PRBonn's lidar-inertial odometry, `rko_lio` command of `pip install rko-lio`) runs where
+the input has an IMU (the IMU lidar-slam reads: imu.csv beside a folder's scans or a bag's
+sensor_msgs/Imu topic, with the lidar-slam config's imu.T_lidar_imu and imu.time_offset_s);
+elsewhere its row says "no IMU". Its own CLI reads rosbags or its "raw" folder format, so the
+benchmarked scans and IMU samples are written once, untimed, into DIR/<sequence>/rko-lio/input/
+in that format (see write_rko_lio_input: same points, same stamps). Its base frame is the lidar
+frame (transforms.yaml: T_lidar_to_base = I, T_imu_to_base = T_lidar_imu); it reports the pose
+at each sweep's last point time, scored against the truth interpolated at those stamps.
+
 Writes DIR/benchmark.md and DIR/benchmark.json (the table), and per (sequence, system) the run
 outputs, logs and evaluation (metrics.json and plots) under DIR/<sequence>/<system>/.
 """
@@ -28,6 +37,7 @@ import datetime
 import importlib.util
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -42,14 +52,25 @@ from lidar_slam.errors import LidarSlamError
 from lidar_slam.eval import evaluate, metrics
 from lidar_slam.geometry import from_xyz_quat, interpolate, inverse
 from lidar_slam.io.sources import open_source
-from lidar_slam.io.trajectory import read_kitti_poses, write_kitti_poses
+from lidar_slam.io.trajectory import read_kitti_poses, read_tum, write_kitti_poses
 
 HERE = Path(__file__).resolve().parent
-SYSTEMS = ("lidar-slam", "kiss-icp-pipeline", "kiss-icp", "kiss-slam")
+SYSTEMS = ("lidar-slam", "kiss-icp-pipeline", "kiss-icp", "kiss-slam", "rko-lio")
 LABELS = {"lidar-slam": "lidar-slam", "kiss-icp-pipeline": "kiss_icp_pipeline (stock, no deskew)",
-          "kiss-icp": "KISS-ICP (stock, own deskew)", "kiss-slam": "KISS-SLAM (stock)"}
-# Which Python package each peer needs; peers live in the `bench` extra and are optional.
-PEER_PACKAGES = {"kiss-icp": "kiss_icp", "kiss-icp-pipeline": "kiss_icp", "kiss-slam": "kiss_slam"}
+          "kiss-icp": "KISS-ICP (stock, own deskew)", "kiss-slam": "KISS-SLAM (stock)",
+          "rko-lio": "rko_lio (stock, lidar-inertial)"}
+# Which Python packages each peer needs; peers live in the `bench` extra and are optional.
+# rko_lio's raw folder reader needs plyfile (its `all` extra; named in the bench extra).
+PEER_PACKAGES = {"kiss-icp": "kiss_icp", "kiss-icp-pipeline": "kiss_icp", "kiss-slam": "kiss_slam",
+                 "rko-lio": ("rko_lio", "plyfile")}
+ODOMETRY_ONLY = ("kiss-icp", "kiss-icp-pipeline", "rko-lio")
+# rko_lio's raw format (rko_lio/dataloaders/raw.py of rko-lio 0.4.0): lidar/<stamp ns>.ply,
+# imu.csv with these columns (stamp in ns), transforms.yaml with the two 4x4 extrinsics.
+RKO_IMU_COLUMNS = ("timestamp", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+# Per-point times are written absolute, in s: told so, its timestamp heuristics are bypassed
+# (relative times near the stamp of the next sweep would pass its "absolute" test).
+RKO_CONFIG = {"lidar_timestamps": {"multiplier_to_seconds": 1.0, "force_absolute": True,
+                                   "force_relative": False}}
 # frames/s ratios are against the first of these that ran: bare odometry, then kiss-icp's deskew.
 SPEED_BASELINES = ("kiss-icp-pipeline", "kiss-icp")
 # loops.csv as the pipeline writes it (lidar_slam.loop.detector.loops_csv_rows): T_match_query.
@@ -70,6 +91,7 @@ class Sequence:
     gt: np.ndarray | None  # (n, 4, 4) T_first_lidar, or None
     config: Path | None
     ground_truth: np.ndarray | None = None  # T_world_lidar of every input scan (the source's)
+    stamps: np.ndarray | None = None  # stamp (s) of every input scan (the source's)
 
 
 @dataclass
@@ -85,6 +107,7 @@ class Row:
     loops_accepted: int | None = None
     loops_correct: int | None = None
     error: str | None = None
+    skipped: str | None = None  # why the system did not run here, not an error (rko-lio: no IMU)
     notes: list[str] = field(default_factory=list)
     result: results.SequenceResult | None = None  # lidar-slam: its row of the batch table
 
@@ -160,17 +183,147 @@ def command(system: str, seq: Sequence, out: Path) -> list[str]:
     if system == "kiss-slam":
         return [sys.executable, str(HERE / "peers" / "kiss_slam_peer.py"), str(seq.path),
                 str(out / "poses_kitti.txt"), "--closures", str(out / "closures.json"), *rng]
+    if system == "rko-lio":
+        # rko_lio's own command on the input written by write_rko_lio_input (the range is
+        # already cut there); trajectory to out/results/rko_lio_0/rko_lio_0_tum.txt.
+        exe = Path(sys.executable).with_name("rko_lio")
+        return [str(exe), str(out / "input"), "--dataloader", "raw", "--config",
+                str(out / "rko_lio_config.yaml"), "--log_dir", str(out / "results"),
+                "--run_name", "rko_lio"]
     raise ValueError(f"unknown system {system!r}")
 
 
 def available(system: str) -> bool:
     """Whether the package a peer needs is importable here; says so when it is not."""
-    pkg = PEER_PACKAGES.get(system)
-    if pkg is None or importlib.util.find_spec(pkg) is not None:
+    pkgs = PEER_PACKAGES.get(system, ())
+    missing = [p for p in ((pkgs,) if isinstance(pkgs, str) else pkgs)
+               if importlib.util.find_spec(p) is None]
+    if not missing:
         return True
-    print(f"skipping {LABELS[system]}: Python package '{pkg}' is not installed in "
+    print(f"skipping {LABELS[system]}: Python package '{missing[0]}' is not installed in "
           f"{sys.executable} (peers are in the bench extra: pip install -e '.[bench]')")
     return False
+
+
+# ------------------------------------------------------------------------------- rko_lio
+
+
+def _stamp_ns(stamp_s: float) -> int:
+    return int(round(stamp_s * 1e9))
+
+
+def readme_extrinsic(path: Path) -> np.ndarray | None:
+    """T_lidar_imu as a simulated sequence's README.txt states it (lidar_slam.sim), or None."""
+    readme = path / "README.txt"
+    if not path.is_dir() or not readme.is_file():
+        return None
+    for line in readme.read_text(errors="replace").splitlines():
+        head, sep, values = line.partition("T_lidar_imu (row-major 3x4):")
+        if sep:
+            T = np.eye(4)
+            T[:3] = np.array(values.split(), dtype=float).reshape(3, 4)
+            return T
+    return None
+
+
+def write_rko_lio_input(seq: Sequence, dest: Path) -> str | None:
+    """Write the benchmarked scans and the input's IMU in rko_lio's raw folder format under dest
+    (replaced), and dest/../rko_lio_config.yaml; returns why rko_lio cannot run (no IMU) or None.
+
+    The IMU is what lidar-slam reads from the same input (lidar_slam.io.inertial_input, with the
+    lidar-slam config's imu.time_offset_s applied and its unusable rows dropped), written with
+    stamps in ns. Each scan of lidar_slam's reader becomes lidar/<stamp ns>.ply with float64
+    x, y, z (the reader's points) and float64 `time`, the point's absolute time in s (stamp +
+    per-point time); scans without per-point times get no time field (rko_lio then warns and
+    does not deskew). transforms.yaml makes the lidar the base frame: T_lidar_to_base = I,
+    T_imu_to_base = imu.T_lidar_imu of the config (the IMU frame into the lidar frame).
+    """
+    import yaml
+
+    from lidar_slam.config import load_config
+    from lidar_slam.io.inertial_input import load_inertial
+
+    cfg = load_config(seq.config)
+    if not cfg.imu.enabled:
+        return "no IMU (imu.enabled: false in the lidar-slam config)"
+    src = open_source(seq.path)
+    imu = load_inertial(seq.path, src.kind, src.stamps, imu_enabled=True, gnss_enabled=False,
+                        imu_offset_s=cfg.imu.time_offset_s).imu
+    if imu is None:
+        return "no IMU"
+    from plyfile import PlyData, PlyElement  # rko_lio's own PLY reader
+
+    if dest.exists():
+        shutil.rmtree(dest)
+    (dest / "lidar").mkdir(parents=True)
+    with (dest / "imu.csv").open("w") as fh:
+        fh.write(",".join(RKO_IMU_COLUMNS) + "\n")
+        for t, w, a in zip(imu.stamp_s, imu.gyro_radps, imu.accel_mps2):
+            fh.write(f"{_stamp_ns(t)}," + ",".join(repr(float(v)) for v in (*w, *a)) + "\n")
+    extrinsics = {"T_imu_to_base": cfg.imu.T_lidar_imu_matrix().tolist(),
+                  "T_lidar_to_base": np.eye(4).tolist()}
+    (dest / "transforms.yaml").write_text(yaml.safe_dump(extrinsics))
+    (dest.parent / "rko_lio_config.yaml").write_text(yaml.safe_dump(RKO_CONFIG))
+    for scan in src.scans(seq.start, seq.n):
+        columns = [("x", "f8"), ("y", "f8"), ("z", "f8")]
+        if scan.point_times is not None:
+            columns.append(("time", "f8"))
+        vertex = np.empty(len(scan.points), dtype=columns)
+        for i, axis in enumerate("xyz"):
+            vertex[axis] = scan.points[:, i]
+        if scan.point_times is not None:
+            vertex["time"] = scan.stamp_s + scan.point_times
+        PlyData([PlyElement.describe(vertex, "vertex")]).write(
+            str(dest / "lidar" / f"{_stamp_ns(scan.stamp_s)}.ply"))
+    return None
+
+
+def rko_lio_trajectory(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """rko_lio's stamps (s) and poses of the lidar frame, T_odom_lidar (K, 4, 4).
+
+    rko_lio writes T_odom_base per registered sweep, stamped with the sweep's last point time,
+    to <log_dir>/<run_name>_<k>/<run_name>_<k>_tum.txt (k: first free index, so the newest
+    run has the highest); T_odom_lidar = T_odom_base @ T_base_lidar (transforms.yaml's
+    T_lidar_to_base, maps lidar points into the base frame).
+    """
+    import yaml
+
+    runs = sorted(out.glob("results/rko_lio_*/rko_lio_*_tum.txt"),
+                  key=lambda p: int(p.parent.name.rpartition("_")[2]))
+    if not runs:
+        raise FileNotFoundError(f"no rko_lio trajectory under {out / 'results'}")
+    stamps, T_odom_base = read_tum(runs[-1])
+    tf = yaml.safe_load((out / "input" / "transforms.yaml").read_text())
+    return stamps, T_odom_base @ np.array(tf["T_lidar_to_base"], dtype=float)
+
+
+def truth_at(seq: Sequence, times_s: np.ndarray) -> np.ndarray:
+    """T_world_lidar of the truth at times_s (s): interpolated between the two scans around
+    each time (slerp/lerp), extrapolated from the last two scans past the last one."""
+    stamps, gt = seq.stamps, seq.ground_truth
+    j = np.clip(np.searchsorted(stamps, times_s, side="right") - 1, 0, len(stamps) - 2)
+    out = np.empty((len(times_s), 4, 4))
+    for i, (t, k) in enumerate(zip(times_s, j)):
+        s = (t - stamps[k]) / (stamps[k + 1] - stamps[k])
+        out[i] = gt[k] @ interpolate(np.eye(4), inverse(gt[k]) @ gt[k + 1], s)
+    return out
+
+
+def evaluate_rko_lio(row: Row, seq: Sequence, out: Path) -> None:
+    """rko_lio's poses in the lidar frame against the truth at its own stamps, both relative to
+    its first pose, written as KITTI files and scored by evaluate.run_eval like the others."""
+    stamps, T = rko_lio_trajectory(out)
+    write_kitti_poses(out / "poses_kitti.txt", inverse(T[0]) @ T)
+    if len(stamps) != seq.n:
+        row.notes.append(f"rko_lio reported {len(stamps)} poses for {seq.n} scans")
+    if seq.ground_truth is None or seq.stamps is None:
+        return
+    gt = truth_at(seq, stamps)
+    write_kitti_poses(out / "ground_truth_kitti.txt", inverse(gt[0]) @ gt)
+    row.metrics.update(evaluate.run_eval(out / "poses_kitti.txt", out / "ground_truth_kitti.txt",
+                                         out_dir=out / "eval"))
+    if row.metrics.get("warning"):
+        row.notes.append(row.metrics["warning"])
 
 
 # ---------------------------------------------------------------------------- evaluating
@@ -263,6 +416,12 @@ def evaluate_row(row: Row, seq: Sequence, out: Path, gt_file: Path | None) -> No
     if row.system == "lidar-slam":
         evaluate_lidar_slam(row, seq, out)
         return
+    if row.system == "rko-lio":
+        try:
+            evaluate_rko_lio(row, seq, out)
+        except (LidarSlamError, OSError) as exc:
+            row.error = f"evaluation failed: {exc}"
+        return
     poses = out / "poses_kitti.txt"
     if row.system == "kiss-icp-pipeline":  # kiss-icp writes under results/<stamp>/
         found = sorted(out.glob("results/latest/*_poses_kitti.txt"))
@@ -291,6 +450,8 @@ def cells(row: Row) -> list[str]:
     name = [row.sequence, LABELS[row.system]]
     if row.error:
         return name + [f"failed: {row.error}"] + [""] * 5
+    if row.skipped:
+        return name + [row.skipped] + [""] * 5
     m = row.metrics
     if not m:
         t_err = r_err = ate = "n/a (no truth)"
@@ -301,7 +462,7 @@ def cells(row: Row) -> list[str]:
     else:
         t_err, r_err = _num(m["t_err_pct"], 2), _num(m["r_err_deg_per_100m"], 3)
         ate = _num(m.get("ate_rmse_m"), 3)
-    if row.system in ("kiss-icp", "kiss-icp-pipeline"):
+    if row.system in ODOMETRY_ONLY:
         loops = "- (odometry only)"
     elif row.loops_accepted is None:
         loops = "n/a"
@@ -348,7 +509,8 @@ def as_json(rows: list[Row], meta: dict) -> dict:
             "loops_accepted": r.loops_accepted, "loops_correct": r.loops_correct,
             "loop_score": r.metrics.get("loop_score"),
             "fps": r.fps, "wall_s": r.wall_s, "peak_mb": max(r.peak_mb) if r.peak_mb else None,
-            "peak_mb_runs": r.peak_mb, "error": r.error, "notes": r.notes,
+            "peak_mb_runs": r.peak_mb, "error": r.error, "skipped": r.skipped,
+            "notes": r.notes,
             "cells": dict(zip(HEADER, cells(r))),
         })
     return {**meta, "columns": list(HEADER), "rows": out_rows}
@@ -381,7 +543,7 @@ def load_sequence(path: str, start: int, n_scans: int | None, configs: dict[str,
         gt = src.ground_truth[start:start + n]
         gt = inverse(gt[0]) @ gt
     return Sequence(Path(path).resolve(), src.name, start, n, gt, configs.get(src.name),
-                    src.ground_truth)
+                    src.ground_truth, np.asarray(src.stamps, dtype=float))
 
 
 def warm_page_cache(path: Path) -> tuple[float, float]:
@@ -395,6 +557,35 @@ def warm_page_cache(path: Path) -> tuple[float, float]:
             while chunk := fh.read(1 << 24):
                 total += len(chunk)
     return total / 1e6, time.perf_counter() - t0
+
+
+def prepare_rko_lio(rows: dict[str, Row], seq: Sequence, seq_dir: Path) -> None:
+    """Write rko_lio's input for seq (untimed), or mark its row skipped (no IMU) or failed;
+    warns on every row when a simulated sequence's README.txt states another T_lidar_imu than
+    the lidar-slam config (both systems would be given the wrong extrinsic)."""
+    from lidar_slam.config import load_config
+
+    row = rows["rko-lio"]
+    t0 = time.perf_counter()
+    try:
+        row.skipped = write_rko_lio_input(seq, seq_dir / "rko-lio" / "input")
+    except LidarSlamError as exc:
+        row.error = f"input for rko_lio: {exc}"
+        return
+    if row.skipped:
+        print(f"{seq.name}: {LABELS['rko-lio']}: {row.skipped}", flush=True)
+        return
+    print(f"{seq.name}: wrote rko_lio's input in {time.perf_counter() - t0:.1f} s", flush=True)
+    row.notes.append("input written once beforehand (untimed) in rko_lio's raw format: "
+                     "lidar/<stamp ns>.ply, imu.csv, transforms.yaml (base = lidar frame); its "
+                     "own defaults otherwise (initialization_phase off: it would assume a start "
+                     "at rest)")
+    stated = readme_extrinsic(seq.path)
+    used = load_config(seq.config).imu.T_lidar_imu_matrix()
+    if stated is not None and not np.allclose(stated, used, atol=1e-6):
+        for r in rows.values():
+            r.notes.append("README.txt states another T_lidar_imu than the lidar-slam config "
+                           "(imu.T_lidar_imu); pass the right one with --config-for")
 
 
 def git_commit() -> str:
@@ -448,15 +639,19 @@ def main(argv: list[str] | None = None) -> int:
                 gt_end_file = seq_dir / "ground_truth_sweep_end_kitti.txt"
                 write_kitti_poses(gt_end_file, gt_end)
         seq_rows = {s: Row(seq.name, s, seq.n) for s in systems}
+        if "rko-lio" in seq_rows:
+            prepare_rko_lio(seq_rows, seq, seq_dir)
         mb_read, secs = warm_page_cache(seq.path)
         print(f"{seq.name}: read {mb_read:.0f} MB in {secs:.1f} s to warm the page cache",
               flush=True)
         for rep in range(args.repeats):  # interleaved so every system sees the same load
             for s, row in seq_rows.items():
-                if row.error:
+                if row.error or row.skipped:
                     continue
                 out = seq_dir / s
                 out.mkdir(exist_ok=True)
+                if s == "rko-lio":  # it numbers its outputs; one run's only
+                    shutil.rmtree(out / "results", ignore_errors=True)
                 wall, mb, code = timed(command(s, seq, out), out / "log.txt", cwd=out)
                 print(f"{seq.name} {LABELS[s]} repeat {rep + 1}/{args.repeats}: {wall:.2f} s, "
                       f"{mb:.0f} MB" + (f", exit {code}" if code else ""), flush=True)
@@ -466,7 +661,7 @@ def main(argv: list[str] | None = None) -> int:
                 row.wall_s.append(wall)
                 row.peak_mb.append(mb)
         for s, row in seq_rows.items():
-            if not row.error:
+            if not row.error and not row.skipped:
                 evaluate_row(row, seq, seq_dir / s, gt_file if s == "lidar-slam" else gt_end_file)
             rows.append(row)
 

@@ -38,6 +38,8 @@ class BatchJob:
     overrides: dict = field(default_factory=dict)
     overwrite: bool = False
     cluster: bool = False
+    imu_topic: str | None = None  # as `run --imu-topic` / `--gnss-topic` (bags only)
+    gnss_topic: str | None = None
 
 
 def expand_inputs(patterns: list[str]) -> list[Path]:
@@ -132,7 +134,7 @@ def finished_result(job: BatchJob, since: float | None = None) -> SequenceResult
     data, out = Path(job.data), Path(job.out)
     cfg = load_config(job.config, job.overrides)
     if not finished_run(out, checkpoint.describe_run(data, job.start, job.n_scans, job.topic,
-                                                     cfg)):
+                                                     cfg, job.imu_topic, job.gnss_topic)):
         return None
     now = since is not None and (out / "summary.json").stat().st_mtime >= since
     source = open_source(data, topic=job.topic,
@@ -155,7 +157,8 @@ def _run_job(job: BatchJob) -> SequenceResult:
             return found
         outcome = run_sequence(
             data, out, config=Path(job.config) if job.config else None, start=job.start,
-            n_scans=job.n_scans, topic=job.topic, overrides=job.overrides,
+            n_scans=job.n_scans, topic=job.topic, imu_topic=job.imu_topic,
+            gnss_topic=job.gnss_topic, overrides=job.overrides,
             overwrite=job.overwrite, resume=not job.overwrite, progress=False)
     except LidarSlamError as exc:
         return error_row(job.name, str(exc))

@@ -37,6 +37,13 @@ def batch(
     n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1,
                                           help="Scans per sequence (default: all)."),
     topic: Optional[str] = typer.Option(None, "--topic", help="PointCloud2 topic of the bags."),
+    imu_topic: Optional[str] = typer.Option(None, "--imu-topic",
+                                            help="sensor_msgs/Imu topic of the bags."),
+    gnss_topic: Optional[str] = typer.Option(None, "--gnss-topic",
+                                             help="sensor_msgs/NavSatFix topic of the bags."),
+    no_imu: bool = typer.Option(False, "--no-imu", help="Do not read the IMU (imu.csv / topic)."),
+    no_gnss: bool = typer.Option(False, "--no-gnss",
+                                 help="Do not read the GNSS (gnss.csv / topic)."),
     no_loops: bool = typer.Option(False, "--no-loops", help="Odometry only."),
     no_deskew: bool = typer.Option(False, "--no-deskew", help="Do not deskew."),
     overwrite: bool = typer.Option(False, "--overwrite",
@@ -64,11 +71,12 @@ def batch(
         raise fail(f"{config}: config file does not exist")
     paths = expand_inputs(data)
     names = sequence_names(paths)
-    overrides = run_overrides(no_loops, no_deskew)
+    overrides = run_overrides(no_loops, no_deskew, no_imu, no_gnss)
     overrides["odometry"] = {"max_num_threads": cpus_per_run}
     jobs = [BatchJob(name, str(path), str((out / name).absolute()),
                      str(config.absolute()) if config else None, start, n_scans, topic,
-                     overrides, overwrite, cluster=address is not None)
+                     overrides, overwrite, cluster=address is not None, imu_topic=imu_topic,
+                     gnss_topic=gnss_topic)
             for name, path in zip(names, paths)]
     fleet = Fleet(address, workers, cpus_per_run)
     meta = {"command": "lidar-slam batch " + " ".join(sys.argv[2:]), "version": __version__,

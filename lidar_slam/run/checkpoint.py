@@ -103,8 +103,9 @@ def check_same_run(run_dir: Path, run: dict, *, verify_files: bool = True) -> No
         raise InputError(path, f"cannot read it to resume ({problem})")
     for key, what in (("version", "checkpoint version"), ("input", "input"),
                       ("start", "--start"), ("n_scans", "--n-scans"), ("topic", "--topic"),
-                      ("config", "config")):
-        if old.get(key) != run[key]:
+                      ("config", "config"), ("imu_topic", "--imu-topic"),
+                      ("gnss_topic", "--gnss-topic")):
+        if old.get(key) != run.get(key):  # the IMU / GNSS topics only when named
             raise InputError(run_dir, f"cannot resume: the run was made with another {what} "
                              f"(use --overwrite to start again)")
 

@@ -38,11 +38,13 @@ class ImuNoise:
     accel_bias_sigma: float  # m/s^2, initial bias
 
 
-# Bosch BMI088 data sheet (BST-BMI088-DS001): gyro rate noise density 0.014 deg/s/sqrt(Hz), gyro
-# bias stability 2 deg/h, accelerometer noise density 175 ug/sqrt(Hz); zero-rate offset +-1 deg/s
-# and zero-g offset +-20 mg before calibration. The sheet gives no random walk: it is taken as
-# bias stability / sqrt(100 s) (gyro), and 0.04 mg / sqrt(100 s) (accelerometer). The initial
-# biases are what a static calibration leaves, 0.1 deg/s and 5 mg (1-sigma).
+# Bosch BMI088 data sheet (BST-BMI088-DS001): gyro rate noise density 0.014 deg/s/sqrt(Hz)
+# (typical, as Bosch's forum quotes the sheet). UNVERIFIED against the sheet's own table (not
+# found): gyro bias stability 2 deg/h, accelerometer noise density 175 ug/sqrt(Hz) (third-party
+# code quotes it), zero-rate offset +-1 deg/s and zero-g offset +-20 mg before calibration. The
+# sheet gives no random walk: it is taken as bias stability / sqrt(100 s) (gyro), and 0.04 mg /
+# sqrt(100 s) (accelerometer). The initial biases are what a static calibration leaves, 0.1
+# deg/s and 5 mg (1-sigma).
 BMI088 = ImuNoise(
     gyro_noise_density=0.014 * _DEG,
     accel_noise_density=175e-6 * _G0,
