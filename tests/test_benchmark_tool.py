@@ -36,7 +36,7 @@ def test_benchmark_table_on_kitti_slice(kitti16, tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     md = (out / "benchmark.md").read_text()
     table = json.loads((out / "benchmark.json").read_text())
-    assert "| sequence | system | t_err % | r_err deg/100 m | ATE m |" in md
+    assert "| sequence | system | t_err % | r_err deg/100 m | ATE m | ATE max m |" in md
     assert "| kitti00_first16 | lidar-slam |" in md and "| kitti00_first16 | KISS-ICP" in md
     assert md.splitlines()[0] in proc.stdout  # the table is printed too
     rows = {r["system"]: r for r in table["rows"]}
@@ -89,7 +89,7 @@ def test_loops_csv_scored_against_truth(kitti16, tmp_path):
     row = bench.Row(seq.name, "lidar-slam", 16)
     bench.score_loops(row, *bench.lidar_slam_loops(path, 0, 16), seq)
     assert (row.loops_accepted, row.loops_correct) == (2, 1)
-    assert bench.cells(row)[5] == "2 / 1"
+    assert bench.cells(row)[6] == "2 / 1"
 
 
 def test_kiss_slam_closures_scored_against_truth(kitti16, tmp_path):

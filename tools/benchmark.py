@@ -55,8 +55,13 @@ from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import read_kitti_poses, read_tum, write_kitti_poses
 
 HERE = Path(__file__).resolve().parent
-SYSTEMS = ("lidar-slam", "kiss-icp-pipeline", "kiss-icp", "kiss-slam", "rko-lio")
-LABELS = {"lidar-slam": "lidar-slam", "kiss-icp-pipeline": "kiss_icp_pipeline (stock, no deskew)",
+SYSTEMS = ("lidar-slam", "lidar-slam-lidar-only", "kiss-icp-pipeline", "kiss-icp", "kiss-slam",
+           "rko-lio")
+# Our own runs (scored by the batch code); the lidar-only one switches the IMU and GNSS off.
+OURS = ("lidar-slam", "lidar-slam-lidar-only")
+LABELS = {"lidar-slam": "lidar-slam",
+          "lidar-slam-lidar-only": "lidar-slam lidar only (--no-imu --no-gnss)",
+          "kiss-icp-pipeline": "kiss_icp_pipeline (stock, no deskew)",
           "kiss-icp": "KISS-ICP (stock, own deskew)", "kiss-slam": "KISS-SLAM (stock)",
           "rko-lio": "rko_lio (stock, lidar-inertial)"}
 # Which Python packages each peer needs; peers live in the `bench` extra and are optional.
@@ -76,7 +81,8 @@ SPEED_BASELINES = ("kiss-icp-pipeline", "kiss-icp")
 # loops.csv as the pipeline writes it (lidar_slam.loop.detector.loops_csv_rows): T_match_query.
 LOOPS_POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 MIN_DRIFT_PATH_M = metrics.KITTI_LENGTHS_M[0]
-HEADER = ("sequence", "system", "t_err %", "r_err deg/100 m", "ATE m", "loops accepted / correct",
+HEADER = ("sequence", "system", "t_err %", "r_err deg/100 m", "ATE m", "ATE max m",
+          "loops accepted / correct",
           "frames/s", "peak MB")
 
 
@@ -165,10 +171,11 @@ def timed(cmd: list[str], log_path: Path, cwd: Path | None = None) -> tuple[floa
 def command(system: str, seq: Sequence, out: Path) -> list[str]:
     """The command line that runs one system on one sequence, writing into out."""
     rng = ["--start", str(seq.start), "--n-scans", str(seq.n)]
-    if system == "lidar-slam":
+    if system in OURS:
         cfg = ["--config", str(seq.config)] if seq.config else []
+        off = ["--no-imu", "--no-gnss"] if system == "lidar-slam-lidar-only" else []
         return [sys.executable, "-m", "lidar_slam.cli", "run", str(seq.path), "--out", str(out),
-                "--overwrite", *rng, *cfg]
+                "--overwrite", *rng, *cfg, *off]
     if system == "kiss-icp-pipeline":
         # kiss-icp's own command on the scan files (its generic loader reads .bin as KITTI
         # x, y, z, intensity: no per-point times, so no deskew), results under out/.
@@ -413,7 +420,7 @@ def evaluate_lidar_slam(row: Row, seq: Sequence, out: Path) -> None:
 
 def evaluate_row(row: Row, seq: Sequence, out: Path, gt_file: Path | None) -> None:
     """Trajectory metrics (evaluate.run_eval) and loop counts of one finished run."""
-    if row.system == "lidar-slam":
+    if row.system in OURS:
         evaluate_lidar_slam(row, seq, out)
         return
     if row.system == "rko-lio":
@@ -449,9 +456,9 @@ def cells(row: Row) -> list[str]:
     """The table cells of one row, every number in the unit of its column header."""
     name = [row.sequence, LABELS[row.system]]
     if row.error:
-        return name + [f"failed: {row.error}"] + [""] * 5
+        return name + [f"failed: {row.error}"] + [""] * 6
     if row.skipped:
-        return name + [row.skipped] + [""] * 5
+        return name + [row.skipped] + [""] * 6
     m = row.metrics
     if not m:
         t_err = r_err = ate = "n/a (no truth)"
@@ -469,7 +476,8 @@ def cells(row: Row) -> list[str]:
     else:
         correct = "?" if row.loops_correct is None else str(row.loops_correct)
         loops = f"{row.loops_accepted} / {correct}"
-    return name + [t_err, r_err, ate, loops, _num(row.fps, 2),
+    ate_max = _num(m.get("ate_max_m"), 3) if m else ""
+    return name + [t_err, r_err, ate, ate_max, loops, _num(row.fps, 2),
                    _num(max(row.peak_mb) if row.peak_mb else None, 0)]
 
 
@@ -483,8 +491,9 @@ def markdown(rows: list[Row], meta: dict) -> str:
                  "read once beforehand (warm page cache); peak MB: max over the repeats of the "
                  "summed RSS of the run's processes (sampled 4/s) or its own peak (os.wait4). "
                  "t_err/r_err: KITTI devkit segments of 100-800 m "
-                 "(n/a when the path is shorter). ATE: RMSE after rigid Umeyama alignment. Loops "
-                 "correct: estimated T_match_query within 1 m / 5 deg of the truth.")
+                 "(n/a when the path is shorter). ATE: RMSE (and max) after rigid Umeyama "
+                 "alignment. Loops correct: estimated T_match_query within 1 m / 5 deg of the "
+                 "truth.")
     for seq, ratio in meta["fps_vs_kiss_icp"].items():
         ratio = dict(ratio)
         base = ratio.pop("baseline")
@@ -499,7 +508,7 @@ def markdown(rows: list[Row], meta: dict) -> str:
 
 def as_json(rows: list[Row], meta: dict) -> dict:
     """The table and the numbers behind it, for comparing a later run with this one."""
-    keep = ("t_err_pct", "r_err_deg_per_100m", "ate_rmse_m", "rpe_trans_m_mean",
+    keep = ("t_err_pct", "r_err_deg_per_100m", "ate_rmse_m", "ate_max_m", "rpe_trans_m_mean",
             "rpe_rot_deg_mean", "path_length_m", "est_path_length_m", "kitti_segments", "note")
     out_rows = []
     for r in rows:
@@ -662,7 +671,7 @@ def main(argv: list[str] | None = None) -> int:
                 row.peak_mb.append(mb)
         for s, row in seq_rows.items():
             if not row.error and not row.skipped:
-                evaluate_row(row, seq, seq_dir / s, gt_file if s == "lidar-slam" else gt_end_file)
+                evaluate_row(row, seq, seq_dir / s, gt_file if s in OURS else gt_end_file)
             rows.append(row)
 
     ratios: dict[str, dict[str, float]] = {}
