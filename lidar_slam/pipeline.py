@@ -205,7 +205,7 @@ class Pipeline:
             r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s
             r.loop_backend, r.backend_init = self.backend.loop_status, self.backend.final_init
-            if use_inertial:
+            if use_inertial and r.kf_poses:
                 self._solve_inertial(inertial)
             r.seconds["backend"] = sum(self.backend.seconds.values())
             r.seconds["backend_final"] = (self.backend.seconds["final"]

@@ -124,6 +124,20 @@ def _imu_links(stream: ImuStream, cfg: SlamConfig, stamps: np.ndarray, keys: lis
     return links
 
 
+def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[int],
+              T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray]):
+    """The IMU links between keyframes, R_up_world (None without links), and the summary."""
+    links = _imu_links(ImuStream(imu), cfg, tr.kf_stamps_s, keys)
+    span = sum(ln.pim.deltaTij() for ln in links)
+    if span < MIN_IMU_SPAN_S:
+        return [], None, {"factors": 0, "reason": f"IMU covers {span:.2f} s between keyframes "
+                                                  f"(need {MIN_IMU_SPAN_S} s)"}
+    R_up_world = _up_rotation(links, T_world_imu, v_world)
+    tilt = np.degrees(np.arccos(np.clip(R_up_world[2, 2], -1.0, 1.0)))
+    return links, R_up_world, {"factors": len(links), "seconds_covered": round(span, 3),
+                               "world_tilt_deg": round(float(tilt), 4)}
+
+
 def _up_rotation(links, T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray]
                  ) -> np.ndarray:
     """R_up_world: the smallest rotation from the world to a z-up frame. Gravity in the world:
@@ -188,23 +202,13 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     v_world = _velocities(T_world_kf, tr, C)
     T_world_imu = {k: T @ Cn[k] for k, T in T_world_kf.items()}
     if imu is not None:
-        links = _imu_links(ImuStream(imu), cfg, tr.kf_stamps_s, keys)
-        span = sum(ln.pim.deltaTij() for ln in links)
-        if span < MIN_IMU_SPAN_S:
-            summary["imu"] = {"factors": 0, "why_unused": f"IMU covers {span:.2f} s between "
-                                                          f"keyframes (need {MIN_IMU_SPAN_S} s)"}
-            links = []
-        else:
-            R_up_world = _up_rotation(links, T_world_imu, v_world)
-            tilt = np.degrees(np.arccos(np.clip(R_up_world[2, 2], -1.0, 1.0)))
-            summary["imu"] = {"factors": len(links), "seconds_covered": round(span, 3),
-                              "world_tilt_deg": round(float(tilt), 4)}
+        links, R_up_world, summary["imu"] = _imu_part(cfg, imu, tr, keys, T_world_imu, v_world)
     tied, alignment, enu, unused = None, None, None, {}
     if fixes is not None:
         tied, alignment, enu, unused = _tie_and_align(cfg, fixes, T_world_kf, tr, R_up_world)
         if alignment.T_enu_world is None:
             log.warning("GNSS not used: %s", alignment.why)
-            summary["gnss"] = {"geo_referenced": False, "why": alignment.why}
+            summary["gnss"] = {"geo_referenced": False, "reason": alignment.why}
             tied = None
     if tied is None and not links:  # nothing to solve: the pose graph's poses stay
         result = InertialResult(dict(T_world_kf), {}, None, None, summary=summary)
@@ -241,14 +245,12 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     sol = run(used)
     d2 = residual = np.zeros(0)
     for round_ in range(GATE_ROUNDS + 1 if tied is not None else 0):
-        T_S_lidar = {k: T @ Cn_inv[k] for k, T in sol.poses.items()}
-        diff = tied.enu_m - tied.antenna(T_S_lidar)
+        diff = tied.enu_m - tied.antenna({k: T @ Cn_inv[k] for k, T in sol.poses.items()})
         residual, d2 = np.linalg.norm(diff, axis=1), gnss_align.normalised_d2(diff, tied.sigma_m)
         gate = d2 < gnss_align.CHI2_3_GATE
         if np.array_equal(gate, used) or round_ == GATE_ROUNDS:
             break
-        used = gate
-        poses = sol.poses  # warm start
+        used, poses = gate, sol.poses  # solve again from here without the fixes gated out
         velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
         sol = run(used)
     T_S_lidar = {k: T @ Cn_inv[k] for k, T in sol.poses.items()}
