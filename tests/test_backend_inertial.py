@@ -211,3 +211,23 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
     rows = (tmp_path / "run" / "gnss_fixes.csv").read_text().splitlines()
     assert rows[0].startswith("stamp_s,keyframe,east_m") and len(rows) == len(inertial.gnss) + 1
     result.store.close()
+
+
+def test_a_run_without_imu_or_gnss_streams_keeps_exactly_the_lidar_only_poses():
+    from pathlib import Path
+
+    from lidar_slam import pipeline
+    from lidar_slam.io.inertial_input import InertialInput
+    from lidar_slam.io.sources import open_source
+
+    sample = Path(__file__).resolve().parents[1] / "sample_scans"
+    cfg = SlamConfig().model_copy(update={"loop": SlamConfig().loop.model_copy(
+        update={"enabled": False})})
+    runs = [pipeline.run(open_source(sample).scans(0, 12), cfg, inertial=inertial)
+            for inertial in (None, InertialInput(None, None, {}))]
+    a, b = (r.final_poses() for r in runs)
+    # two lidar-only runs in one process already differ by ~2e-14 (odometry round-off)
+    np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    assert runs[1].geo is None and runs[1].T_gravity_map is None and not runs[1].gnss_fixes
+    for r in runs:
+        r.store.close()
