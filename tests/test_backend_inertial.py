@@ -231,3 +231,29 @@ def test_a_run_without_imu_or_gnss_streams_keeps_exactly_the_lidar_only_poses():
     assert runs[1].geo is None and runs[1].T_gravity_map is None and not runs[1].gnss_fixes
     for r in runs:
         r.store.close()
+
+
+@pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.0), (180.0, 0.0, 90.0), (12.0, -35.0, 170.0)])
+def test_the_imu_extrinsic_and_gravity_alignment_need_no_scipy_spatial(rpy):
+    """Both as scipy's Rotation computes them (the reference here), with NumPy alone: a run's
+    inertial solve must not import scipy.spatial (~28 MB of RSS)."""
+    from lidar_slam.config import ImuConfig
+    from lidar_slam.imu import gravity_rotation
+
+    T = ImuConfig(T_lidar_imu=[0.1, 0.2, 0.3, *rpy]).T_lidar_imu_matrix()
+    np.testing.assert_allclose(T[:3, :3], Rotation.from_euler("xyz", rpy, degrees=True)
+                               .as_matrix(), atol=1e-12)
+    f = T[:3, :3].T @ [0.0, 0.0, 9.81]  # at rest, this IMU feels gravity here
+    R = gravity_rotation(f)
+    np.testing.assert_allclose(R @ f, [0.0, 0.0, 9.81], atol=1e-9)
+    expected, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [f / 9.81])
+    if rpy != (180.0, 0.0, 90.0):  # upside down: any half turn will do
+        np.testing.assert_allclose(R, expected.as_matrix(), atol=1e-9)
+    import subprocess
+    import sys
+
+    code = ("import sys; from lidar_slam.config import ImuConfig; from lidar_slam.imu import "
+            "gravity_rotation; ImuConfig(T_lidar_imu=[0, 0, 0, 1, 2, 3]).T_lidar_imu_matrix(); "
+            "gravity_rotation([0.1, 0.2, 9.8]); print('scipy.spatial' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
