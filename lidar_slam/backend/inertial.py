@@ -45,7 +45,10 @@ FREE_TILT_SIGMA_RAD = 0.5
 GNSS_PRIOR_TRANS_SIGMA_M, GNSS_PRIOR_ROT_SIGMA_RAD = 100.0, 1.0
 GNSS_HUBER_K = 3.0  # whitened units: a fix within 3 sigma counts fully
 GATE_ROUNDS = 4
-RELATIVE_TOL = 1e-9
+# LM stops when an iteration gains less than this (relative): on sim s08 without GNSS, LM creeps
+# along a flat valley (not yet understood) for 100 iterations at 1e-9, 46 at 1e-6,
+# the same poses (ATE 0.1124 m both); elsewhere it converges in 3-10 either way.
+RELATIVE_TOL = 1e-6
 MIN_IMU_SPAN_S = 1.0  # IMU links must cover this much to tell gravity
 
 
