@@ -268,8 +268,7 @@ class ImuConfig(_Section):
 
     @model_validator(mode="after")
     def _extrinsic_is_rigid(self) -> ImuConfig:
-        # Six finite numbers are always a rigid transform: not built here, so that loading a
-        # config does not import scipy.spatial (start-up cost of every command).
+        # Six finite numbers are always a rigid transform: not built here.
         if len(self.T_lidar_imu) == 6:
             if not np.all(np.isfinite(self.T_lidar_imu)):
                 raise ValueError("T_lidar_imu must be finite (x y z m, roll pitch yaw deg)")
@@ -280,11 +279,13 @@ class ImuConfig(_Section):
     def T_lidar_imu_matrix(self) -> np.ndarray:  # noqa: N802 (frame-named, as the project)
         """T_lidar_imu as a 4x4 float64 array (maps IMU-frame points into the lidar frame)."""
         values = np.asarray(self.T_lidar_imu, dtype=np.float64)
-        if len(values) == 6:
-            from scipy.spatial.transform import Rotation
+        if len(values) == 6:  # extrinsic x-y-z: R = Rz(yaw) Ry(pitch) Rx(roll)
+            from lidar_slam.geometry import matrix_from_rotvec  # NumPy: no scipy.spatial (28 MB)
 
+            roll, pitch, yaw = np.radians(values[3:])
             T = np.eye(4)
-            T[:3, :3] = Rotation.from_euler("xyz", values[3:], degrees=True).as_matrix()
+            T[:3, :3] = (matrix_from_rotvec([0.0, 0.0, yaw]) @ matrix_from_rotvec([0.0, pitch, 0.0])
+                         @ matrix_from_rotvec([roll, 0.0, 0.0]))
             T[:3, 3] = values[:3]
             return T
         if len(values) != 16:

@@ -28,7 +28,8 @@ def _pyproj():
 @functools.lru_cache(maxsize=8)
 def _transformer(lat0: float, lon0: float, h0: float):
     Transformer = _pyproj().Transformer
-    lat0, lon0, h0 = float(lat0), float(lon0), float(h0)  # a NumPy float's repr is no number
+    # float(): the repr of a NumPy scalar is "np.float64(49.0)", which PROJ misreads silently
+    lat0, lon0, h0 = float(lat0), float(lon0), float(h0)
     pipe = ("+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad "
             "+step +proj=cart +ellps=WGS84 "
             f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat0!r} +lon_0={lon0!r} +h_0={h0!r}")

@@ -18,6 +18,7 @@ import gtsam
 import numpy as np
 
 from lidar_slam.config import ImuConfig
+from lidar_slam.geometry import matrix_from_rotvec
 from lidar_slam.io.inertial import ImuSamples
 
 GRAVITY_MPS2 = 9.81
@@ -125,7 +126,10 @@ def gravity_rotation(specific_force: np.ndarray) -> np.ndarray:
     norm = float(np.linalg.norm(f))
     if not np.isfinite(norm) or norm < 1e-6:
         raise ValueError("no specific force to align with gravity")
-    from scipy.spatial.transform import Rotation  # scipy.spatial only when used
-
-    R, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [f / norm])
-    return R.as_matrix()
+    # NumPy (geometry), not scipy.spatial: its import costs a run ~28 MB of RSS and 0.3 s
+    f = f / norm
+    axis = np.cross(f, [0.0, 0.0, 1.0])
+    s, c = float(np.linalg.norm(axis)), float(f[2])
+    if s < 1e-12:  # along z already, or upside down: half a turn about x
+        return np.eye(3) if c > 0 else matrix_from_rotvec([np.pi, 0.0, 0.0])
+    return matrix_from_rotvec(axis / s * np.arctan2(s, c))

@@ -50,7 +50,14 @@ class RunResult:
     backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
     # slow scans refined against the last keyframes, and refinements refused (see odometry)
     refined_scans: tuple[int, int] = (0, 0)
-    geo: GeoReference | None = None  # where the map frame lies on the Earth (with GNSS)
+    # With IMU / GNSS in the final solve (lidar_slam.backend.inertial), both taking the frame of
+    # the output poses (poses_kitti.txt: frame 0 at its stamp is the identity): where it lies
+    # on the Earth (GNSS; lidar_slam.geo.GeoReference), and the rotation from it to a
+    # gravity-aligned z-up frame (the smallest one: no heading change), else None.
+    geo: GeoReference | None = None
+    T_gravity_map: np.ndarray | None = None
+    gnss_fixes: list = field(default_factory=list)  # FixReport per input fix (gnss_fixes.csv)
+    inertial_summary: dict = field(default_factory=dict)  # merged into summary.json imu / gnss
 
     def final_poses(self) -> np.ndarray:
         """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""
@@ -170,38 +177,87 @@ class Pipeline:
         table = self.result.store.table()
         return {int(k): T for k, T in zip(table["id"], table["T"])}
 
-    def finish(self) -> RunResult:
-        """Wait for the loop worker, solve the full graph, and return the run's result."""
+    def finish(self, inertial=None) -> RunResult:
+        """Wait for the loop worker, solve the full graph, and return the run's result. With
+        an IMU or GNSS (inertial: lidar_slam.io.inertial_input.InertialInput), the final solve
+        includes them (lidar_slam.backend.inertial), with or without loops."""
         r = self.result
         r.refined_scans = (self.odometry.n_refined, self.odometry.n_refine_refused)
         if self.adaptive is None:  # no scan at all
             self.start(adapt.auto_values(self.cfg, None))
+        use_inertial = inertial is not None and (inertial.imu is not None
+                                                 or inertial.gnss is not None)
+        if self.backend is None and use_inertial and len(r.store):
+            from lidar_slam.backend.slam_backend import Backend
+
+            self.backend = Backend(self.cfg.backend)  # no loops: the odometry chain
         if self.backend is not None:
-            t0, waited = time.perf_counter(), self.loops.wait_s
-            self.loops.pace(0)  # nothing left to share the cores with
-            try:
-                self._apply_loops(len(r.store))
-            finally:
-                self.loops.close()
+            t0 = time.perf_counter()
+            if self.loops is not None:
+                waited = self.loops.wait_s
+                self.loops.pace(0)  # nothing left to share the cores with
+                try:
+                    self._apply_loops(len(r.store))
+                finally:
+                    self.loops.close()
             for kf_id in range(len(self.backend), len(r.store)):  # stopped mid-keyframe
                 self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
             r.kf_poses = self.backend.finish()
             r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s
             r.loop_backend, r.backend_init = self.backend.loop_status, self.backend.final_init
+            if use_inertial and r.kf_poses:
+                self._solve_inertial(inertial)
             r.seconds["backend"] = sum(self.backend.seconds.values())
-            r.seconds["backend_final"] = self.backend.seconds["final"]
-            r.seconds["loop_worker"] = self.loops.busy_s
-            r.seconds["loop_wait"] = self.loops.wait_s
-            r.seconds["loop_wait_final"] = self.loops.wait_s - waited  # the backlog at the end
-            r.seconds["loop_worker_urgent"] = self.loops.urgent_s
-            r.seconds["loops"] += time.perf_counter() - t0
+            r.seconds["backend_final"] = (self.backend.seconds["final"]
+                                          + self.backend.seconds.get("inertial", 0.0))
+            if self.loops is not None:
+                r.seconds["loop_worker"] = self.loops.busy_s
+                r.seconds["loop_wait"] = self.loops.wait_s
+                r.seconds["loop_wait_final"] = self.loops.wait_s - waited  # the final backlog
+                r.seconds["loop_worker_urgent"] = self.loops.urgent_s
+                r.seconds["loops"] += time.perf_counter() - t0
         else:
             from lidar_slam.backend.slam_backend import chain_covariances
 
             r.kf_poses = self.current_kf_poses()
             r.kf_covariances = chain_covariances(self.cfg.backend, r.kf_poses)
         return r
+
+    def _solve_inertial(self, inertial) -> None:
+        """The final solve again with the IMU and GNSS factors (when they can be used): the
+        keyframe poses, covariances, geo-reference and gravity direction of the result."""
+        from lidar_slam.backend import inertial as solver
+        from lidar_slam.geo import GeoReference
+        from lidar_slam.imu import gravity_rotation
+
+        r, t0 = self.result, time.perf_counter()
+        table = r.store.table()
+        odom = np.stack(r.odom_poses)
+        at_stamp = odom[np.searchsorted(np.asarray(r.indices), table["frame_index"])]
+        tr = solver.RunTrajectory(np.asarray(table["stamp_s"], dtype=float),
+                                  np.asarray(table["T"], dtype=float), at_stamp,
+                                  np.asarray(r.stamps_s), odom)
+        out = solver.solve(self.cfg, r.kf_poses, self.backend.final_edges(), tr, inertial.imu,
+                           inertial.gnss)
+        self.backend.seconds["inertial"] = time.perf_counter() - t0
+        if out is None:
+            return
+        r.gnss_fixes, r.inertial_summary = out.fixes, out.summary
+        if out.T_S_world is None:  # the GNSS could not place the run, and no IMU
+            return
+        r.kf_poses, r.kf_covariances = out.kf_poses, out.covariances
+        # the output map frame: frame 0 at its stamp (lidar_slam.run.outputs anchors there)
+        kf0 = r.frame_kf[0]
+        T_world_map = r.kf_poses[kf0] @ inverse(r.store.T_world_kf_odom(kf0)) @ r.odom_poses[0]
+        T_S_map = out.T_S_world @ T_world_map
+        T_gravity_map = np.eye(4)
+        T_gravity_map[:3, :3] = gravity_rotation(T_S_map[:3, :3].T @ [0.0, 0.0, 1.0])
+        r.T_gravity_map = T_gravity_map
+        if out.enu is not None:
+            r.geo = GeoReference(out.enu, T_S_map)
+            r.inertial_summary.setdefault("gnss", {})["T_enu_map"] = [
+                round(float(v), 9) for v in T_S_map[:3].ravel()]
 
     def close(self) -> None:
         """Stop the loop worker and release the keyframe store."""
@@ -211,19 +267,19 @@ class Pipeline:
 
 
 def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = None,
-        on_scan: Callable[[Scan, RunResult], None] | None = None) -> RunResult:
+        on_scan: Callable[[Scan, RunResult], None] | None = None, inertial=None) -> RunResult:
     """Process scans in order and return the result (its keyframe store stays open): the bare
     loop over Pipeline, for library use and tests, with no run folder rules, signals or outputs,
     and errors propagate. The run driver (what `lidar-slam run` and `batch` do: --out rules,
     resume, signals, the frames so far kept on an error, the outputs) is
-    lidar_slam.run.run_sequence."""
+    lidar_slam.run.run_sequence. inertial: the IMU / GNSS (InertialInput) for the final solve."""
     pipe = Pipeline(cfg, run_dir)
     try:
         for scan in scans:
             pipe.process(scan)
             if on_scan is not None:
                 on_scan(scan, pipe.result)
-        return pipe.finish()
+        return pipe.finish(inertial)
     finally:
         if pipe.loops is not None:
             pipe.loops.close()

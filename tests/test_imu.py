@@ -76,3 +76,12 @@ def test_enu_and_wgs84_round_trip_at_a_datum():
     llh = frame.to_wgs84(enu)
     np.testing.assert_allclose(llh[0], frame.datum, atol=1e-9)
     np.testing.assert_allclose(frame.from_wgs84(llh), enu, atol=1e-6)
+
+
+def test_a_datum_given_as_numpy_scalars_converts_like_one_of_floats():
+    from lidar_slam.geo import LocalEnu
+
+    datum = (49.011, 8.424, 112.0)
+    llh = np.array([[49.0111, 8.4245, 115.0]])
+    exact = LocalEnu(*datum).from_wgs84(llh)
+    np.testing.assert_allclose(LocalEnu(*np.array(datum)).from_wgs84(llh), exact, atol=1e-9)

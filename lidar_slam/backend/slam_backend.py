@@ -190,6 +190,12 @@ class Backend:
         self._covariances()
         return poses
 
+    def final_edges(self) -> list[BetweenFactor]:
+        """The graph's edges as the final solve left them: odometry, and the loops it did not
+        reject (with their Huber kernel), for a solve with more factors (backend.inertial)."""
+        return [e for e in self.graph.edges
+                if not e.is_loop or self.loop_status.get((e.i, e.j)) != "rejected"]
+
     def _covariances(self) -> None:
         t0 = time.perf_counter()
         self.covariances = self.graph.covariances(self.cfg.robust, self.cfg.huber_k)

@@ -10,8 +10,8 @@ from lidar_slam.errors import RunFailed
 # Every file and folder `run` writes into --out: --overwrite deletes these and nothing else.
 RUN_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.ply", "loops.csv",
                "covariances.csv", "graph.g2o", "config.yaml", "summary.json",
-               "error_traceback.txt", "keyframes", "checkpoint",
-               "poses_enu.txt", "poses_wgs84.csv")  # with GNSS
+                "error_traceback.txt", "keyframes", "checkpoint", "gnss_fixes.csv",
+                "poses_enu.txt", "poses_wgs84.csv")  # with GNSS
 
 
 def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: bool = False

@@ -187,8 +187,25 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["skipped_small_scans"] = result.skipped_small
     summary["odometry_refined_scans"], summary["odometry_refine_refused"] = result.refined_scans
     summary.update(extra or {})
+    for key, entry in result.inertial_summary.items():  # the back-end's use of the IMU / GNSS
+        summary[key] = {**(summary.get(key) or {}), **entry}
+    if result.gnss_fixes:
+        write_gnss_fixes(out_dir / "gnss_fixes.csv", result.gnss_fixes)
     write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def write_gnss_fixes(path: Path, fixes: list) -> None:
+    """gnss_fixes.csv: per input fix (lidar_slam.backend.inertial.FixReport) its stamp, the
+    keyframe it was tied to (-1: none), its position in the run's ENU frame (m), its residual
+    after the final solve (m) and normalised squared residual (chi-square, 3 dof), and whether
+    it was used, rejected (a multipath jump) or unused, with why."""
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        rows = csv.writer(fh)
+        rows.writerow(["stamp_s", "keyframe", "east_m", "north_m", "up_m", "residual_m", "d2",
+                       "status", "why"])
+        rows.writerows([f"{f.stamp_s:.6f}", f.keyframe, *(f"{v:.4f}" for v in f.enu_m),
+                        f"{f.residual_m:.4f}", f"{f.d2:.3f}", f.status, f.why] for f in fixes)
 
 
 LOCALIZE_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "status.csv", "summary.json")

@@ -149,8 +149,7 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
 
 def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None):
     """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
-    against the scan stamps. Not yet used by
-    the estimator: read, checked and reported in summary.json."""
+    against the scan stamps; the back-end's final solve uses them (Pipeline.finish)."""
     from lidar_slam.io.inertial_input import load_inertial
 
     stamps = source.stamps if source.kind != "file" else None
@@ -233,7 +232,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                 pipe.close()
                 discard_run(out, created)
                 raise _nothing_written(end, stop.received, out, data, frames, cfg)
-            result = pipe.finish()
+            result = pipe.finish(inertial)
             status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
                       "frames_requested": total}
             if end.error:

@@ -1,0 +1,326 @@
+"""IMU and GNSS in the final solve of the back-end (issue 22, item 3).
+
+After the pose graph's final solve (loops kept or rejected as before), the keyframes are moved
+into a gravity-aligned z-up frame S (with GNSS: the local ENU frame of the first usable fix) and
+solved again with every factor: the pose graph's odometry and kept loops, a CombinedImuFactor
+between consecutive keyframes (velocity and bias states) and a Huber-robust GPSFactorArm per
+fix. The windows of the live estimate stay pose-only; only this final solve sees the IMU and
+GNSS. The result comes back in the run's world frame (the first keyframe where the pose graph
+put it) with T_S_world, where that world lies in S.
+
+Initial values: the gravity direction from the IMU over the whole run (the mean specific force
+rotated by the poses, less the change of velocity of the odometry), velocities from the
+odometry, biases zero. With GNSS, T_enu_world from a robust alignment of the run's antenna
+positions to the fixes (lidar_slam.backend.gnss), then solve and gate again until the fixes
+kept stop changing: a multipath jump is left out, not followed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lidar_slam.backend import gnss as gnss_align
+from lidar_slam.backend import inertial_graph
+from lidar_slam.backend.factors import BetweenFactor
+from lidar_slam.config import SlamConfig
+from lidar_slam.geo import LocalEnu
+from lidar_slam.geometry import inverse, make_pose
+from lidar_slam.imu import ImuStream, combined_params, gravity_rotation
+from lidar_slam.io.inertial import GnssFixes, ImuSamples
+
+log = logging.getLogger(__name__)
+
+# Prior of the first bias (accelerometer m/s^2, gyro rad/s): loose, a consumer MEMS unit's
+# offsets after a static calibration are ~0.05 m/s^2 and ~0.002 rad/s.
+BIAS_SIGMA = np.array([0.2, 0.2, 0.2, 0.02, 0.02, 0.02])
+# Without GNSS the first keyframe keeps its place and heading (the pose graph's prior) but its
+# roll and pitch are the IMU's to say: their prior is this loose (rad).
+FREE_TILT_SIGMA_RAD = 0.5
+# With GNSS the fixes place the run: the first keyframe's prior only keeps the problem well
+# posed (m, rad).
+GNSS_PRIOR_TRANS_SIGMA_M, GNSS_PRIOR_ROT_SIGMA_RAD = 100.0, 1.0
+GNSS_HUBER_K = 3.0  # whitened units: a fix within 3 sigma counts fully
+GATE_ROUNDS = 4
+# LM stops when an iteration gains less than this (relative): on sim s08 without GNSS, LM creeps
+# along a flat valley (not yet understood) for 100 iterations at 1e-9, 46 at 1e-6,
+# the same poses (ATE 0.1124 m both); elsewhere it converges in 3-10 either way.
+RELATIVE_TOL = 1e-6
+MIN_IMU_SPAN_S = 1.0  # IMU links must cover this much to tell gravity
+
+
+@dataclass(frozen=True)
+class RunTrajectory:
+    """What the run knows of its path: keyframe stamps (s) and odometry poses (n, 4, 4: the
+    back-end's nodes), the odometry at each keyframe's stamp (n, 4, 4: the first keyframe's node
+    is at the middle of its sweep, lidar_slam.frontend.odometry T_world_first), every frame's
+    stamp and odometry pose (m, 4, 4); all in the odometry's world frame."""
+
+    kf_stamps_s: np.ndarray
+    kf_odom: np.ndarray
+    kf_stamp_odom: np.ndarray
+    frame_stamps_s: np.ndarray
+    frame_odom: np.ndarray
+
+
+@dataclass(frozen=True)
+class FixReport:
+    """One GNSS fix as the back-end used it (a row of gnss_fixes.csv): its keyframe (-1 when
+    not tied), its ENU position (m), the residual (m) and normalised squared residual after
+    the solve, and used / rejected / unused with why."""
+
+    stamp_s: float
+    keyframe: int
+    enu_m: tuple[float, float, float]
+    residual_m: float
+    d2: float
+    status: str
+    why: str = ""
+
+
+@dataclass
+class InertialResult:
+    """The final solve with IMU and/or GNSS: kf_poses (T_world_kf, same world as given, the first
+    keyframe where it was given), their covariances (6x6, rotation first, keyframe frame),
+    T_S_world (S: gravity-aligned z up; the ENU frame `enu` when geo-referenced), per-fix
+    reports, and what summary.json says (imu, gnss)."""
+
+    kf_poses: dict[int, np.ndarray]
+    covariances: dict[int, np.ndarray]
+    T_S_world: np.ndarray | None  # None: nothing was solved (the fixes could not place the run)
+    enu: LocalEnu | None
+    fixes: list[FixReport] = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def _velocities(T_world_kf: dict[int, np.ndarray], tr: RunTrajectory, C: np.ndarray
+                ) -> dict[int, np.ndarray]:
+    """Each keyframe's IMU velocity (world frame, m/s): the central difference of the
+    odometry's IMU positions over the frames on either side of its stamp, turned with the
+    keyframe's correction (pose graph vs odometry)."""
+    t = tr.frame_stamps_s
+    p = tr.frame_odom[:, :3, :3] @ C[:3, 3] + tr.frame_odom[:, :3, 3]
+    out = {}
+    for k, T in T_world_kf.items():
+        i = int(np.searchsorted(t, tr.kf_stamps_s[k]))
+        a, b = max(i - 1, 0), min(i + 1, len(t) - 1)
+        if not t[b] > t[a]:
+            out[k] = np.zeros(3)
+            continue
+        R_corr = T[:3, :3] @ tr.kf_odom[k][:3, :3].T
+        out[k] = R_corr @ (p[b] - p[a]) / (t[b] - t[a])
+    return out
+
+
+def _imu_links(stream: ImuStream, cfg: SlamConfig, stamps: np.ndarray, keys: list[int]):
+    """Preintegrated IMU between consecutive keyframes whose interval the samples cover."""
+    params = combined_params(cfg.imu)
+    links = []
+    for i, j in zip(keys[:-1], keys[1:], strict=True):
+        t0, t1 = float(stamps[i]), float(stamps[j])
+        if np.isfinite(t0) and np.isfinite(t1) and stream.start_s <= t0 < t1 <= stream.end_s:
+            links.append(inertial_graph.ImuLink(i, j, stream.preintegrate(t0, t1, params)))
+    return links
+
+
+def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[int],
+              T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray]):
+    """The IMU links between keyframes, R_up_world (None without links), and the summary."""
+    links = _imu_links(ImuStream(imu), cfg, tr.kf_stamps_s, keys)
+    span = sum(ln.pim.deltaTij() for ln in links)
+    if span < MIN_IMU_SPAN_S:
+        return [], None, {"factors": 0, "reason": f"IMU covers {span:.2f} s between keyframes "
+                                                  f"(need {MIN_IMU_SPAN_S} s)"}
+    R_up_world = _up_rotation(links, T_world_imu, v_world)
+    tilt = np.degrees(np.arccos(np.clip(R_up_world[2, 2], -1.0, 1.0)))
+    return links, R_up_world, {"factors": len(links), "seconds_covered": round(span, 3),
+                               "world_tilt_deg": round(float(tilt), 4)}
+
+
+def _up_rotation(links, T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray]
+                 ) -> np.ndarray:
+    """R_up_world: the smallest rotation from the world to a z-up frame. Gravity in the world:
+    over every link, the change of velocity = the integrated specific force (rotated by the
+    poses) + gravity x time, so g = (sum dv - sum R_i dV_ij) / sum dt."""
+    dv = sum(v_world[ln.j] - v_world[ln.i] for ln in links)
+    f = sum(T_world_imu[ln.i][:3, :3] @ np.asarray(ln.pim.deltaVij()) for ln in links)
+    g = (dv - f) / sum(ln.pim.deltaTij() for ln in links)
+    return gravity_rotation(-g)
+
+
+def _node_to_imu(tr: RunTrajectory, keys: list[int], C: np.ndarray) -> dict[int, np.ndarray]:
+    """Per keyframe, T_node_imu: from the back-end's node to the IMU at the keyframe's stamp
+    (the same array C wherever the node is at the stamp, so that edges share noise models)."""
+    out = {}
+    for k in keys:
+        D = inverse(tr.kf_odom[k]) @ tr.kf_stamp_odom[k]
+        out[k] = C if np.allclose(D, np.eye(4), rtol=0.0, atol=1e-12) else D @ C
+    return out
+
+
+def _edges_between_imus(edges: list[BetweenFactor], Cn: dict[int, np.ndarray]
+                        ) -> list[BetweenFactor]:
+    """Node edges as edges between the IMU frames: T_i_j -> Cn_i^-1 T_i_j Cn_j, information
+    Ad(Cn_j)^T I Ad(Cn_j) (the edge's error e becomes Ad(Cn_j^-1) e)."""
+    infos: dict[tuple[int, int], np.ndarray] = {}
+    out = []
+    for e in edges:
+        Ci, Cj = Cn[e.i], Cn[e.j]
+        key = (id(e.information), id(Cj))
+        if key not in infos:  # shared matrices stay shared (one noise model)
+            Ad = inertial_graph.adjoint(Cj)
+            infos[key] = Ad.T @ e.information @ Ad
+        out.append(BetweenFactor(e.i, e.j, inverse(Ci) @ e.T_i_j @ Cj, infos[key], e.robust_k,
+                                 e.is_loop))
+    return out
+
+
+def _prior_covariance(R_S_node: np.ndarray, rot_sigma: np.ndarray, trans_sigma: float
+                      ) -> np.ndarray:
+    """6x6 covariance (node frame, rotation first) of rotation sigmas given about the S axes
+    (rad) and an isotropic position sigma (m)."""
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = R_S_node.T @ np.diag(np.asarray(rot_sigma, dtype=float) ** 2) @ R_S_node
+    cov[3:, 3:] = np.eye(3) * trans_sigma ** 2
+    return cov
+
+
+def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[BetweenFactor],
+          tr: RunTrajectory, imu: ImuSamples | None, fixes: GnssFixes | None
+          ) -> InertialResult | None:
+    """The final solve with every factor (see the module docstring); None without IMU and GNSS.
+    When neither can be used, the poses given, with the reasons in the summary and reports."""
+    if imu is None and fixes is None:
+        return None
+    t_start = time.perf_counter()
+    keys = sorted(T_world_kf)
+    summary: dict = {}
+    links, R_up_world = [], None
+    C = cfg.imu.T_lidar_imu_matrix() if imu is not None else np.eye(4)
+    Cn = _node_to_imu(tr, keys, C)
+    v_world = _velocities(T_world_kf, tr, C)
+    T_world_imu = {k: T @ Cn[k] for k, T in T_world_kf.items()}
+    if imu is not None:
+        links, R_up_world, summary["imu"] = _imu_part(cfg, imu, tr, keys, T_world_imu, v_world)
+    tied, alignment, enu, unused = None, None, None, {}
+    if fixes is not None:
+        tied, alignment, enu, unused = _tie_and_align(cfg, fixes, T_world_kf, tr, R_up_world)
+        if alignment.T_enu_world is None:
+            log.warning("GNSS not used: %s", alignment.why)
+            summary["gnss"] = {"geo_referenced": False, "reason": alignment.why}
+            tied = None
+    if tied is None and not links:  # nothing to solve: the pose graph's poses stay
+        result = InertialResult(dict(T_world_kf), {}, None, None, summary=summary)
+        if fixes is not None:
+            result.fixes = _reports(fixes, None, None, None, None, unused, alignment)
+            summary["gnss"].update(_counts(result.fixes))
+        return result
+    if tied is not None:
+        T_S_world = alignment.T_enu_world
+        rot_sigma, trans_sigma = np.full(3, GNSS_PRIOR_ROT_SIGMA_RAD), GNSS_PRIOR_TRANS_SIGMA_M
+    else:
+        T_S_world = make_pose(R_up_world, np.zeros(3))
+        b = cfg.backend
+        rot_sigma = np.array([FREE_TILT_SIGMA_RAD, FREE_TILT_SIGMA_RAD,
+                              np.radians(b.prior_rot_sigma_deg)])
+        trans_sigma = b.prior_trans_sigma_m
+    poses = {k: T_S_world @ T for k, T in T_world_imu.items()}
+    velocities = {k: T_S_world[:3, :3] @ v for k, v in v_world.items()}
+    prior_mean = poses[keys[0]]
+    prior_cov = _prior_covariance(prior_mean[:3, :3], rot_sigma, trans_sigma)
+    imu_edges = _edges_between_imus(edges, Cn)
+    Cn_inv = {k: inverse(T) for k, T in Cn.items()}
+
+    def run(used: np.ndarray) -> inertial_graph.InertialSolution:
+        factors = [] if tied is None else [
+            inertial_graph.GnssFactor(k, tied.enu_m[f], Cn_inv[k][:3, :3] @ tied.arm_kf_m[f]
+                                      + Cn_inv[k][:3, 3], tied.sigma_m[f])
+            for f in np.flatnonzero(used) for k in [int(tied.keyframe[f])]]
+        return inertial_graph.solve(poses, velocities, imu_edges, links, factors,
+                                    prior_mean, prior_cov, BIAS_SIGMA, GNSS_HUBER_K,
+                                    cfg.backend.max_iterations, RELATIVE_TOL)
+
+    used = alignment.inlier.copy() if tied is not None else np.zeros(0, dtype=bool)
+    sol = run(used)
+    d2 = residual = np.zeros(0)
+    for round_ in range(GATE_ROUNDS + 1 if tied is not None else 0):
+        diff = tied.enu_m - tied.antenna({k: T @ Cn_inv[k] for k, T in sol.poses.items()})
+        residual, d2 = np.linalg.norm(diff, axis=1), gnss_align.normalised_d2(diff, tied.sigma_m)
+        gate = d2 < gnss_align.CHI2_3_GATE
+        if np.array_equal(gate, used) or round_ == GATE_ROUNDS:
+            break
+        used, poses = gate, sol.poses  # solve again from here without the fixes gated out
+        velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
+        sol = run(used)
+    T_S_lidar = {k: T @ Cn_inv[k] for k, T in sol.poses.items()}
+    T_S_world_out = T_S_lidar[keys[0]] @ inverse(T_world_kf[keys[0]])
+    T_world_S = inverse(T_S_world_out)
+    Ad = {k: inertial_graph.adjoint(T) for k, T in Cn.items()}
+    result = InertialResult({k: T_world_S @ T for k, T in T_S_lidar.items()},
+                            {k: Ad[k] @ c @ Ad[k].T for k, c in sol.covariances.items()},
+                            T_S_world_out, enu if tied is not None else None)
+    if links:
+        bias = np.mean([sol.biases[k] for k in sol.biases], axis=0)
+        summary["imu"]["mean_bias_accel_mps2"] = [round(float(v), 5) for v in bias[:3]]
+        summary["imu"]["mean_bias_gyro_radps"] = [round(float(v), 6) for v in bias[3:]]
+    if fixes is not None:
+        result.fixes = _reports(fixes, tied, used, residual, d2, unused, alignment)
+        summary["gnss"] = {**summary.get("gnss", {}), **_counts(result.fixes)}
+        if tied is not None:
+            summary["gnss"].update(geo_referenced=True, datum=list(enu.datum))
+    result.seconds = time.perf_counter() - t_start
+    summary["inertial_solve"] = {"seconds": round(result.seconds, 3),
+                                 "error": [round(sol.initial_error, 6),
+                                           round(sol.final_error, 6)],
+                                 "iterations": sol.iterations}
+    result.summary = summary
+    log.info("final solve with %d IMU factors and %d GNSS fixes: error %.6g -> %.6g, %.2f s",
+             len(links), int(used.sum()), sol.initial_error, sol.final_error, result.seconds)
+    return result
+
+
+def _tie_and_align(cfg: SlamConfig, fixes: GnssFixes, T_world_kf: dict[int, np.ndarray],
+                   tr: RunTrajectory, R_up_world: np.ndarray | None):
+    """The fixes tied to keyframes in the ENU frame of the first fix within the scans' span,
+    and the robust alignment of the run to them."""
+    inside = np.flatnonzero((fixes.stamp_s >= tr.frame_stamps_s[0])
+                            & (fixes.stamp_s <= tr.frame_stamps_s[-1]))
+    first = int(inside[0]) if len(inside) else 0
+    enu = LocalEnu(float(fixes.lat_deg[first]), float(fixes.lon_deg[first]),
+                   float(fixes.alt_m[first]))
+    enu_m = enu.from_wgs84(np.c_[fixes.lat_deg, fixes.lon_deg, fixes.alt_m])
+    tied, unused = gnss_align.tie_fixes(fixes, enu_m, tr.kf_stamps_s, tr.kf_odom,
+                                        tr.frame_stamps_s, tr.frame_odom,
+                                        np.asarray(cfg.gnss.lever_arm_m, dtype=float))
+    alignment = gnss_align.align(tied.antenna(T_world_kf), tied.enu_m, tied.sigma_m, R_up_world)
+    return tied, alignment, enu, unused
+
+
+def _counts(fixes: list[FixReport]) -> dict[str, int]:
+    return {f"fixes_{s}": sum(f.status == s for f in fixes) for s in ("used", "rejected", "unused")}
+
+
+def _reports(fixes: GnssFixes, tied, used, residual, d2, unused, alignment) -> list[FixReport]:
+    """One FixReport per fix of the input, in its order."""
+    out: dict[int, FixReport] = {}
+    gate = gnss_align.CHI2_3_GATE
+    for f in range(0 if tied is None else len(tied)):
+        i = int(tied.index[f])
+        enu_f = tuple(float(v) for v in tied.enu_m[f])
+        if used[f]:
+            status, why = "used", ""
+        else:
+            status = "rejected"
+            why = f"normalised residual {d2[f]:.1f} > {gate:g} (chi-square 3, 99.9 %)"
+        out[i] = FixReport(float(fixes.stamp_s[i]), int(tied.keyframe[f]), enu_f,
+                           float(residual[f]), float(d2[f]), status, why)
+    for i in range(len(fixes)):
+        if i not in out:
+            why = unused.get(i) or f"no geo-reference: {alignment.why}"
+            out[i] = FixReport(float(fixes.stamp_s[i]), -1, (np.nan,) * 3, np.nan, np.nan,
+                               "unused", why)
+    return [out[i] for i in range(len(fixes))]

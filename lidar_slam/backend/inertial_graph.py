@@ -1,0 +1,175 @@
+"""The full keyframe graph with IMU and GNSS factors, in gtsam: pose X(k), velocity V(k) and bias
+B(k) per keyframe; the pose graph's odometry and loop edges, gtsam CombinedImuFactor between
+consecutive keyframes (PreintegratedCombinedMeasurements from lidar_slam.imu), GPSFactorArm per
+GNSS fix (Huber-robust), a prior on the first pose and bias. Levenberg-Marquardt, then the
+poses' marginal covariances.
+
+Everything here is in one frame S (gravity-aligned z up; ENU with GNSS) and the nodes are IMU
+frames: the preintegrated measurements then need no lever-arm correction (gtsam's body_P_sensor
+leaves out the angular acceleration term), and the caller moves lidar-frame edges and lever arms
+into the IMU frame (lidar_slam.backend.inertial).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, V, X
+
+from lidar_slam.backend.factors import BetweenFactor
+
+
+@dataclass(frozen=True)
+class ImuLink:
+    """IMU measurements preintegrated from keyframe i's stamp to keyframe j's."""
+
+    i: int
+    j: int
+    pim: gtsam.PreintegratedCombinedMeasurements
+
+
+@dataclass(frozen=True)
+class GnssFactor:
+    """One fix: the antenna at enu_m (S frame) is at arm_m in node `key`'s frame; sigma_m (3,)."""
+
+    key: int
+    enu_m: np.ndarray
+    arm_m: np.ndarray
+    sigma_m: np.ndarray
+
+
+@dataclass(frozen=True)
+class InertialSolution:
+    """T_S_node (4x4), velocity (3,) and bias (6,: accelerometer then gyro) per keyframe with
+    IMU states, the error before / after, LM iterations and seconds; covariances (6x6, rotation
+    first, node frame) when asked for."""
+
+    poses: dict[int, np.ndarray]
+    velocities: dict[int, np.ndarray]
+    biases: dict[int, np.ndarray]
+    initial_error: float
+    final_error: float
+    iterations: int
+    seconds: float
+    covariances: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+def _noise(information: np.ndarray, robust_k: float | None):
+    base = gtsam.noiseModel.Gaussian.Information(information)
+    if robust_k is None:
+        return base
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), base)
+
+
+def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
+          edges: list[BetweenFactor], links: list[ImuLink], gnss: list[GnssFactor],
+          prior_pose: np.ndarray, prior_covariance: np.ndarray, bias_sigma: np.ndarray,
+          gnss_huber_k: float, max_iterations: int, relative_error_tol: float,
+          covariances: bool = True) -> InertialSolution:
+    """LM from the initial poses (T_S_node) and velocities (keyframes with IMU states), biases
+    zero; the first keyframe's pose has a prior (mean, 6x6 covariance in its frame) and the first
+    bias of every chain of IMU links a zero-mean prior (bias_sigma, 6: accelerometer then gyro).
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    first = min(poses)
+    for k, T in poses.items():
+        values.insert(X(k), gtsam.Pose3(T))
+    graph.add(gtsam.PriorFactorPose3(X(first), gtsam.Pose3(prior_pose),
+                                     gtsam.noiseModel.Gaussian.Covariance(prior_covariance)))
+    noises: dict = {}
+    for e in edges:
+        key = (id(e.information), e.robust_k)
+        if key not in noises:
+            noises[key] = _noise(e.information, e.robust_k)
+        graph.add(gtsam.BetweenFactorPose3(X(e.i), X(e.j), gtsam.Pose3(e.T_i_j), noises[key]))
+    bias_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(bias_sigma, dtype=float))
+    starts = {link.i for link in links} - {link.j for link in links}
+    for k in sorted({link.i for link in links} | {link.j for link in links}):
+        values.insert(V(k), np.asarray(velocities[k], dtype=float))
+        values.insert(B(k), gtsam.imuBias.ConstantBias())
+        if k in starts:
+            graph.add(gtsam.PriorFactorConstantBias(B(k), gtsam.imuBias.ConstantBias(),
+                                                    bias_noise))
+    for link in links:
+        graph.add(gtsam.CombinedImuFactor(X(link.i), V(link.i), X(link.j), V(link.j), B(link.i),
+                                          B(link.j), link.pim))
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(gnss_huber_k)
+    for g in gnss:
+        model = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Diagonal.Sigmas(
+            np.asarray(g.sigma_m, dtype=float)))
+        graph.add(gtsam.GPSFactorArm(X(g.key), np.asarray(g.enu_m, dtype=float),
+                                     np.asarray(g.arm_m, dtype=float), model))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(relative_error_tol)
+    params.setAbsoluteErrorTol(0.0)
+    t0 = time.perf_counter()
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    initial_error = float(graph.error(values))
+    result = optimizer.optimize()
+    out_poses = {k: np.asarray(result.atPose3(X(k)).matrix(), dtype=np.float64) for k in poses}
+    with_imu = [k for k in velocities if values.exists(V(k))]
+    cov = pose_covariances(graph, result, list(poses)) if covariances else {}
+    return InertialSolution(
+        out_poses, {k: np.asarray(result.atVector(V(k))) for k in with_imu},
+        {k: np.asarray(result.atConstantBias(B(k)).vector()) for k in with_imu}, initial_error,
+        float(graph.error(result)), int(optimizer.iterations()), time.perf_counter() - t0, cov)
+
+
+def pose_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                     keys: list[int]) -> dict[int, np.ndarray]:
+    """Marginal covariance (6x6, rotation first, node frame) of every pose X(k) at the solution.
+
+    gtsam's Marginals (COLAMD ordering) calls these graphs indeterminate near the last
+    velocities (00 and synthetic drives, with or without GNSS), while the same Hessian is
+    positive definite to NumPy's Cholesky (its smallest pivot 1.4): so the Bayes tree is
+    eliminated in METIS order (which succeeds; the same covariances as a sparse LU, to 5e-7),
+    COLAMD next, and the diagonal blocks of the inverse Hessian by a sparse LU (scipy) last."""
+    gfg = graph.linearize(values)
+    for ordering in (gtsam.Ordering.MetisGaussianFactorGraph,
+                     gtsam.Ordering.ColamdGaussianFactorGraph):
+        try:
+            tree = gfg.eliminateMultifrontal(ordering(gfg))
+            return {k: _symmetric(tree.marginalCovariance(X(k))) for k in keys}
+        except RuntimeError:  # gtsam's IndeterminantLinearSystemException
+            continue
+    return _lu_covariances(gfg, keys)
+
+
+def _symmetric(cov) -> np.ndarray:
+    cov = np.asarray(cov, dtype=np.float64)
+    return 0.5 * (cov + cov.T)
+
+
+def _lu_covariances(gfg: gtsam.GaussianFactorGraph, keys: list[int]) -> dict[int, np.ndarray]:
+    """The pose blocks of the inverse Hessian by a sparse LU (slow: ~1 ms per pose)."""
+    from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import splu
+
+    offsets, n = {}, 0
+    for key in sorted(gfg.keys()):  # sparseJacobian_'s column order: keys sorted, then b
+        offsets[key] = n
+        n += 3 if gtsam.Symbol(key).chr() == ord("v") else 6  # pose and bias: 6
+    rows, cols, vals = gfg.sparseJacobian_()
+    inside = cols <= n  # 1-based; the last column is b
+    J = csc_matrix((vals[inside], (rows[inside].astype(int) - 1, cols[inside].astype(int) - 1)))
+    lu = splu(csc_matrix(J.T @ J), permc_spec="MMD_AT_PLUS_A")
+    out = {}
+    for chunk in range(0, len(keys), 64):  # 64 poses' columns at a time: bounded memory
+        part = keys[chunk:chunk + 64]
+        E = np.zeros((n, 6 * len(part)))
+        for c, k in enumerate(part):
+            E[offsets[X(k)]:offsets[X(k)] + 6, 6 * c:6 * c + 6] = np.eye(6)
+        Z = lu.solve(E)
+        for c, k in enumerate(part):
+            out[k] = _symmetric(Z[offsets[X(k)]:offsets[X(k)] + 6, 6 * c:6 * c + 6])
+    return out
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """gtsam's 6x6 adjoint of T (rotation first): T Exp(xi) T^-1 = Exp(Ad(T) xi)."""
+    return np.asarray(gtsam.Pose3(T).AdjointMap(), dtype=np.float64)

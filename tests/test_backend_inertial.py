@@ -1,0 +1,259 @@
+"""lidar_slam.backend.inertial: IMU and GNSS factors in the final solve, on synthetic drives (the
+simulator's smooth trajectory, IMU and GNSS, with an odometry that drifts), and in the
+pipeline's finish."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lidar_slam.backend import inertial as solver
+from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
+from lidar_slam.config import SlamConfig
+from lidar_slam.eval import metrics
+from lidar_slam.geometry import inverse, matrix_from_rotvec
+from lidar_slam.io.inertial import GnssFixes, ImuSamples
+from lidar_slam.sim.inertial import BMI088, ImuOptions, SmoothTrajectory, simulate_imu
+
+DATUM = (49.0110, 8.4240, 112.0)
+
+
+class Drive:
+    """A car's drive (world: ENU at DATUM, z up), its IMU, keyframes every 0.4 s with an
+    odometry that drifts (~0.5 %), and the pose-graph inputs of the inertial solve."""
+
+    def __init__(self, seconds: float = 40.0, tilt_deg=(4.0, -3.0), seed: int = 0,
+                 straight: bool = False):
+        rng = np.random.default_rng(seed)
+        t = np.arange(0.0, seconds + 1e-9, 0.1)
+        x = 9.0 * t
+        y = np.zeros_like(t) if straight else 60.0 * np.sin(0.05 * t)
+        z = 1.8 + 3.0 * np.sin(0.03 * t)
+        yaw = np.arctan2(np.gradient(y, t), np.gradient(x, t))
+        roll = np.radians(tilt_deg[0]) * np.cos(0.1 * t)
+        pitch = np.radians(tilt_deg[1]) * np.cos(0.07 * t)
+        poses = np.tile(np.eye(4), (len(t), 1, 1))
+        poses[:, :3, :3] = Rotation.from_euler("ZYX", np.c_[yaw, pitch, roll]).as_matrix()
+        poses[:, :3, 3] = np.c_[x, y, z]
+        self.traj = SmoothTrajectory(t, poses)
+        self.frame_stamps = t
+        self.truth = self.traj(t)  # T_enu_lidar
+        self.T_enu_world = self.truth[0]  # the run's world: the first scan's frame
+        true_odom = inverse(self.T_enu_world) @ self.truth
+        odom = [true_odom[0]]
+        for i in range(1, len(t)):  # drift: small rotation and scale errors per frame
+            rel = inverse(true_odom[i - 1]) @ true_odom[i]
+            noise = np.eye(4)
+            noise[:3, :3] = matrix_from_rotvec(rng.normal(0.0, 2e-4, 3))
+            noise[:3, 3] = rng.normal(0.0, 2e-3, 3)
+            odom.append(odom[-1] @ rel @ noise)
+        self.frame_odom = np.stack(odom)
+        self.kf_frames = np.arange(0, len(t), 4)
+        self.kf_odom = self.frame_odom[self.kf_frames]
+        self.cfg = SlamConfig()
+        b = self.cfg.backend
+        info = sigmas_to_information(b.odom_rot_sigma_deg, b.odom_trans_sigma_m)
+        self.edges = [BetweenFactor(k - 1, k, inverse(self.kf_odom[k - 1]) @ self.kf_odom[k], info)
+                      for k in range(1, len(self.kf_frames))]
+        self.T_world_kf = {k: T for k, T in enumerate(self.kf_odom)}
+        imu = simulate_imu(self.traj, 0.0, seconds, ImuOptions(200.0, BMI088),
+                           np.random.default_rng([seed, 2]))
+        self.imu = ImuSamples(imu.stamps_s, imu.gyro, imu.accel, "test imu")
+
+    def trajectory(self) -> solver.RunTrajectory:
+        return solver.RunTrajectory(self.frame_stamps[self.kf_frames], self.kf_odom,
+                                    self.kf_odom, self.frame_stamps, self.frame_odom)
+
+    def fixes(self, jumps: dict[int, float] | None = None, sigma_h: float = 1.5,
+              sigma_v: float = 3.0, seed: int = 0) -> GnssFixes:
+        """1 Hz fixes of the lidar (no lever arm) with noise, epoch i jumped by jumps[i] m."""
+        from lidar_slam.geo import LocalEnu
+
+        rng = np.random.default_rng([seed, 3])
+        t = np.arange(0.0, self.frame_stamps[-1] + 1e-9, 1.0)
+        enu = self.traj(t)[:, :3, 3] + rng.normal(0.0, 1.0, (len(t), 3)) * [sigma_h, sigma_h,
+                                                                               sigma_v]
+        for i, size in (jumps or {}).items():
+            enu[i, :2] += size * np.array([0.6, 0.8])
+        llh = LocalEnu(*DATUM).to_wgs84(enu)
+        n = len(t)
+        return GnssFixes(t, llh[:, 0], llh[:, 1], llh[:, 2], np.full(n, sigma_h),
+                         np.full(n, sigma_v), "test gnss")
+
+    def frame_poses(self, T_world_kf: dict[int, np.ndarray]) -> np.ndarray:
+        """Every frame's pose moved with its keyframe's (as RunResult.final_poses)."""
+        kf_of = np.searchsorted(self.kf_frames, np.arange(len(self.frame_stamps)), "right") - 1
+        return np.stack([T_world_kf[k] @ inverse(self.kf_odom[k]) @ T
+                         for k, T in zip(kf_of, self.frame_odom, strict=True)])
+
+
+@pytest.fixture(scope="module")
+def drive() -> Drive:
+    return Drive()
+
+
+def test_the_imu_in_the_final_solve_recovers_roll_and_pitch_of_a_tilted_start(drive):
+    out = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(), drive.imu,
+                       None)
+    assert out is not None and out.enu is None
+    up_true = drive.T_enu_world[:3, :3].T @ [0.0, 0.0, 1.0]  # the world's up, in the world
+    up = out.T_S_world[:3, :3].T @ [0.0, 0.0, 1.0]
+    # 5 deg of tilt to within 0.15 deg (an accelerometer bias of 5 mg alone tilts 0.3 deg)
+    assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 0.15
+    assert out.summary["imu"]["factors"] == len(drive.kf_frames) - 1
+    assert np.allclose(out.kf_poses[0], drive.T_world_kf[0], atol=1e-6)  # the first stays
+
+
+def test_imu_factors_do_not_make_a_clean_run_worse(drive):
+    out = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(), drive.imu,
+                       None)
+    truth = inverse(drive.T_enu_world) @ drive.truth
+    before = metrics.ate(drive.frame_poses(drive.T_world_kf), truth).rmse_m
+    after = metrics.ate(drive.frame_poses(out.kf_poses), truth).rmse_m
+    assert after <= before + 0.01, (before, after)
+    cov = out.covariances[len(drive.kf_frames) // 2]
+    assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+@pytest.mark.parametrize("with_imu", [True, False])
+def test_a_40_m_multipath_jump_is_rejected_and_reported(drive, with_imu):
+    pytest.importorskip("pyproj")
+    fixes = drive.fixes(jumps={17: 40.0})
+    out = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(),
+                       drive.imu if with_imu else None, fixes)
+    assert out is not None and out.enu is not None
+    jumped = out.fixes[17]
+    assert jumped.status == "rejected" and jumped.residual_m > 30.0
+    assert "normalised residual" in jumped.why
+    assert sum(f.status == "used" for f in out.fixes) >= len(fixes) - 2
+    assert out.summary["gnss"]["fixes_rejected"] >= 1
+
+
+@pytest.mark.parametrize("with_imu", [True, False])
+def test_gnss_places_the_map_on_the_earth_without_any_alignment(drive, with_imu):
+    pytest.importorskip("pyproj")
+    from lidar_slam.geo import LocalEnu
+
+    out = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(),
+                       drive.imu if with_imu else None, drive.fixes(jumps={5: 25.0, 30: 45.0}))
+    poses = out.T_S_world @ drive.frame_poses(out.kf_poses)  # in the run's ENU frame
+    enu = LocalEnu(*DATUM).from_wgs84(out.enu.to_wgs84(poses[:, :3, 3]))
+    err = np.linalg.norm(enu - drive.truth[:, :3, 3], axis=1)
+    assert np.sqrt(np.mean(err ** 2)) < 1.0, np.sqrt(np.mean(err ** 2))
+    assert [f.status for f in out.fixes].count("rejected") >= 2
+
+
+def test_gnss_without_imu_on_a_straight_road_gives_no_geo_reference_and_says_why():
+    pytest.importorskip("pyproj")
+    d = Drive(seconds=20.0, straight=True, tilt_deg=(0.0, 0.0))
+    out = solver.solve(d.cfg, d.T_world_kf, d.edges, d.trajectory(), None, d.fixes())
+    assert out.T_S_world is None and out.kf_poses.keys() == d.T_world_kf.keys()
+    assert all(out.kf_poses[k] is T for k, T in d.T_world_kf.items())  # the poses stay
+    assert "line" in out.summary["gnss"]["reason"]
+    assert {f.status for f in out.fixes} == {"unused"}
+    d2 = Drive(seconds=20.0, straight=True, tilt_deg=(0.0, 0.0))
+    out = solver.solve(d2.cfg, d2.T_world_kf, d2.edges, d2.trajectory(), d2.imu, d2.fixes())
+    assert out is not None and out.enu is not None  # with an IMU, yaw alone: a line will do
+
+
+def test_without_imu_or_gnss_there_is_no_inertial_solve(drive):
+    assert solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(), None,
+                        None) is None
+
+
+
+def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_referenced(tmp_path):
+    """End to end on a small simulated sequence: Pipeline.finish with the IMU and GNSS the run
+    read, loops off; then the run folder's gnss_fixes.csv and summary counts."""
+    pytest.importorskip("pyproj")
+    import dataclasses
+
+    from lidar_slam import pipeline
+    from lidar_slam.io.inertial_input import load_inertial
+    from lidar_slam.io.sources import open_source
+    from lidar_slam.run.outputs import write_run
+    from lidar_slam.sim import SENSORS, simulate_sequence
+    from lidar_slam.sim.inertial import GnssOptions
+
+    t = np.arange(90) / 10.0
+    poses = np.tile(np.eye(4), (len(t), 1, 1))
+    poses[:, :3, 3] = np.c_[8.0 * t, 4.0 * np.sin(0.3 * t), 1.8 + 0.05 * t]
+    yaw = np.arctan2(1.2 * np.cos(0.3 * t), 8.0)
+    poses[:, :3, :3] = Rotation.from_euler("ZYX", np.c_[yaw, -0.03 + 0 * t, 0.02 + 0 * t]
+                                           ).as_matrix()
+    data = tmp_path / "seq"
+    simulate_sequence(poses, t, data, dataclasses.replace(SENSORS["vlp16"], n_azimuth=360),
+                      seed=0, n_scans=80, imu=ImuOptions(),
+                      gnss=GnssOptions(jump_fraction=0.0, dropout=0.0))
+    src = open_source(data)
+    inertial = load_inertial(data, src.kind, src.stamps, imu_enabled=True, gnss_enabled=True)
+    cfg = SlamConfig().model_copy(update={"loop": SlamConfig().loop.model_copy(
+        update={"enabled": False})})
+    result = pipeline.run(src.scans(), cfg, inertial=inertial)
+    assert result.T_gravity_map is not None and result.geo is not None
+    T_world_seq = np.eye(4)
+    T_world_seq[:3] = np.loadtxt(data / "T_world_seq.txt").reshape(3, 4)
+    # 8 s of driving nearly straight: the tilt is as good as the accelerometer bias's prior
+    # (0.2 m/s^2, 1.2 deg) allows, against the fixes' 3 m vertical noise
+    up = result.T_gravity_map[:3, :3].T @ [0.0, 0.0, 1.0]
+    up_true = T_world_seq[:3, :3].T @ [0.0, 0.0, 1.0]
+    assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 2.0
+    # the map frame's origin (frame 0, as the outputs anchor it) lands where the lidar was
+    from lidar_slam.geo import LocalEnu
+    from lidar_slam.sim.inertial import KARLSRUHE
+
+    origin = LocalEnu(*KARLSRUHE).from_wgs84(result.geo.map_to_wgs84(np.zeros((1, 3))))[0]
+    assert np.linalg.norm(origin[:2] - T_world_seq[:2, 3]) < 2.0
+    summary = write_run(tmp_path / "run", result, cfg, None, 1.0, extra=inertial.summary)
+    assert summary["gnss"]["used"] is True and summary["gnss"]["fixes_used"] >= 7
+    assert summary["imu"]["factors"] >= 5
+    rows = (tmp_path / "run" / "gnss_fixes.csv").read_text().splitlines()
+    assert rows[0].startswith("stamp_s,keyframe,east_m") and len(rows) == len(inertial.gnss) + 1
+    result.store.close()
+
+
+def test_a_run_without_imu_or_gnss_streams_keeps_exactly_the_lidar_only_poses():
+    from pathlib import Path
+
+    from lidar_slam import pipeline
+    from lidar_slam.io.inertial_input import InertialInput
+    from lidar_slam.io.sources import open_source
+
+    sample = Path(__file__).resolve().parents[1] / "sample_scans"
+    cfg = SlamConfig().model_copy(update={"loop": SlamConfig().loop.model_copy(
+        update={"enabled": False})})
+    runs = [pipeline.run(open_source(sample).scans(0, 12), cfg, inertial=inertial)
+            for inertial in (None, InertialInput(None, None, {}))]
+    a, b = (r.final_poses() for r in runs)
+    # two lidar-only runs in one process already differ by ~2e-14 (odometry round-off)
+    np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    assert runs[1].geo is None and runs[1].T_gravity_map is None and not runs[1].gnss_fixes
+    for r in runs:
+        r.store.close()
+
+
+@pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.0), (180.0, 0.0, 90.0), (12.0, -35.0, 170.0)])
+def test_the_imu_extrinsic_and_gravity_alignment_need_no_scipy_spatial(rpy):
+    """Both as scipy's Rotation computes them (the reference here), with NumPy alone: a run's
+    inertial solve must not import scipy.spatial (~28 MB of RSS)."""
+    from lidar_slam.config import ImuConfig
+    from lidar_slam.imu import gravity_rotation
+
+    T = ImuConfig(T_lidar_imu=[0.1, 0.2, 0.3, *rpy]).T_lidar_imu_matrix()
+    np.testing.assert_allclose(T[:3, :3], Rotation.from_euler("xyz", rpy, degrees=True)
+                               .as_matrix(), atol=1e-12)
+    f = T[:3, :3].T @ [0.0, 0.0, 9.81]  # at rest, this IMU feels gravity here
+    R = gravity_rotation(f)
+    np.testing.assert_allclose(R @ f, [0.0, 0.0, 9.81], atol=1e-9)
+    expected, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [f / 9.81])
+    if rpy != (180.0, 0.0, 90.0):  # upside down: any half turn will do
+        np.testing.assert_allclose(R, expected.as_matrix(), atol=1e-9)
+    import subprocess
+    import sys
+
+    code = ("import sys; from lidar_slam.config import ImuConfig; from lidar_slam.imu import "
+            "gravity_rotation; ImuConfig(T_lidar_imu=[0, 0, 0, 1, 2, 3]).T_lidar_imu_matrix(); "
+            "gravity_rotation([0.1, 0.2, 9.8]); print('scipy.spatial' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -1,0 +1,126 @@
+"""How well a GNSS run sits on the Earth, against the simulator's truth, with no alignment at all.
+
+    python tools/gnss_check.py RUN SIM [--json OUT.json]
+
+RUN: a `lidar-slam run` folder of a simulated sequence with gnss.csv (summary.json's gnss entry
+has the datum and T_enu_map the back-end found; gnss_fixes.csv says what it did with each fix).
+SIM: the `lidar-slam simulate --gnss` folder (poses.txt, calib.txt, T_world_seq.txt, whose world
+is ENU at the datum of gnss_truth.csv). Prints the absolute position error of every frame (the
+run's map-frame lidar positions through its geo-reference to WGS84, then to the simulator's ENU,
+against the true lidar positions): RMS, horizontal and vertical RMS, max; and every multipath
+jump of the simulator with what the run did with it (rejected x of y).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam.geo import LocalEnu
+from lidar_slam.io.trajectory import camera_to_lidar_poses, read_kitti_calib_tr, read_kitti_poses
+
+
+def sim_datum(sim: Path) -> LocalEnu:
+    """The simulator's ENU datum, from gnss_truth.csv (true ENU and WGS84 of every epoch): the
+    WGS84 point of ENU (0, 0, 0) seen from the epoch nearest to it, refined once over all."""
+    t = np.loadtxt(sim / "gnss_truth.csv", delimiter=",", skiprows=1, ndmin=2)
+    enu, llh = t[:, 1:4], t[:, 4:7]
+    i = int(np.argmin(np.linalg.norm(enu, axis=1)))
+    guess = LocalEnu(*LocalEnu(*llh[i]).to_wgs84(-enu[i:i + 1])[0])
+    offset = (guess.from_wgs84(llh) - enu).mean(axis=0)  # the true datum in the guess's ENU
+    datum = LocalEnu(*guess.to_wgs84(offset[None])[0])
+    worst = float(np.abs(datum.from_wgs84(llh) - enu).max())
+    if worst > 1e-3:
+        raise SystemExit(f"{sim}: cannot recover the simulator's datum (off by {worst:.3g} m)")
+    return datum
+
+
+def true_lidar_enu(sim: Path) -> np.ndarray:
+    """(n, 3) the true lidar position of every simulated scan in the simulator's ENU frame."""
+    Tr = read_kitti_calib_tr(sim / "calib.txt")
+    T_seq_lidar = camera_to_lidar_poses(read_kitti_poses(sim / "poses.txt"), Tr)
+    T_world_seq = read_kitti_poses(sim / "T_world_seq.txt")[0]
+    return (T_world_seq @ T_seq_lidar)[:, :3, 3]
+
+
+def run_enu(run: Path, datum: LocalEnu) -> np.ndarray:
+    """(n, 3) the run's lidar positions (poses_kitti.txt) placed by its geo-reference, in the
+    ENU frame of `datum`."""
+    gnss = json.loads((run / "summary.json").read_text()).get("gnss") or {}
+    if "T_enu_map" not in gnss:
+        why = gnss.get("reason", "no GNSS")
+        raise SystemExit(f"{run}: no geo-reference in summary.json ({why})")
+    T = np.eye(4)
+    T[:3] = np.asarray(gnss["T_enu_map"], dtype=float).reshape(3, 4)
+    p = read_kitti_poses(run / "poses_kitti.txt")[:, :3, 3]
+    enu = p @ T[:3, :3].T + T[:3, 3]
+    return datum.from_wgs84(LocalEnu(*gnss["datum"]).to_wgs84(enu))
+
+
+def jumps(run: Path, sim: Path) -> list[dict]:
+    """Every simulated multipath jump that reached gnss.csv, with the run's verdict on it."""
+    truth = np.loadtxt(sim / "gnss_truth.csv", delimiter=",", skiprows=1, ndmin=2)
+    with open(run / "gnss_fixes.csv", newline="") as fh:
+        fixes = {round(float(r["stamp_s"]), 3): r for r in csv.DictReader(fh)}
+    out = []
+    for stamp, dropped, jump in truth[:, [0, 7, 8]]:
+        if jump > 0 and not dropped:
+            r = fixes.get(round(float(stamp), 3))
+            out.append({"stamp_s": float(stamp), "jump_m": float(jump),
+                        "status": r["status"] if r else "missing",
+                        "residual_m": float(r["residual_m"]) if r else None})
+    return out
+
+
+def check(run: Path, sim: Path) -> dict:
+    """The figures printed by main()."""
+    datum = sim_datum(sim)
+    summary = json.loads((run / "summary.json").read_text())
+    est = run_enu(run, datum)
+    start = int(summary.get("start", 0))
+    truth = true_lidar_enu(sim)[start:start + len(est)]
+    err = est - truth
+    with open(run / "gnss_fixes.csv", newline="") as fh:
+        status = [r["status"] for r in csv.DictReader(fh)]
+    j = jumps(run, sim)
+    good_rejected = sum(s == "rejected" for s in status) - sum(x["status"] == "rejected"
+                                                                for x in j)
+    return {"frames": len(est),
+            "abs_rmse_m": float(np.sqrt((err ** 2).sum(axis=1).mean())),
+            "abs_rmse_horizontal_m": float(np.sqrt((err[:, :2] ** 2).sum(axis=1).mean())),
+            "abs_rmse_vertical_m": float(np.sqrt((err[:, 2] ** 2).mean())),
+            "abs_max_m": float(np.linalg.norm(err, axis=1).max()),
+            "fixes_used": status.count("used"), "fixes_rejected": status.count("rejected"),
+            "jumps": j, "jumps_rejected": sum(x["status"] == "rejected" for x in j),
+            "good_fixes_rejected": good_rejected}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("sim", type=Path)
+    ap.add_argument("--json", type=Path, help="Also write the figures as JSON.")
+    a = ap.parse_args(argv)
+    r = check(a.run, a.sim)
+    print(f"absolute position error, no alignment ({r['frames']} frames): RMS "
+          f"{r['abs_rmse_m']:.3f} m (horizontal {r['abs_rmse_horizontal_m']:.3f}, vertical "
+          f"{r['abs_rmse_vertical_m']:.3f}), max {r['abs_max_m']:.3f} m")
+    print(f"fixes: {r['fixes_used']} used, {r['fixes_rejected']} rejected "
+          f"({r['good_fixes_rejected']} of them not a simulated jump)")
+    print(f"multipath jumps rejected: {r['jumps_rejected']} of {len(r['jumps'])}")
+    for x in r["jumps"]:
+        res = "-" if x["residual_m"] is None else f"{x['residual_m']:.1f} m"
+        print(f"  t {x['stamp_s']:9.3f} s  jump {x['jump_m']:5.1f} m  {x['status']:8s} "
+              f"residual {res}")
+    if a.json is not None:
+        a.json.write_text(json.dumps(r, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
