@@ -95,7 +95,7 @@ def test_handheld_same_seed_same_bytes(tmp_path):
                           imu=ImuOptions(), gnss=None)
         runs[name] = {p.relative_to(tmp_path / name): p.read_bytes()
                       for p in sorted((tmp_path / name).rglob("*")) if p.is_file()}
-    assert runs["a"] == runs["b"] and len(runs["a"]) == 2 * 5 + 7
+    assert runs["a"] == runs["b"] and len(runs["a"]) == 2 * 5 + 8
     assert runs["a"][next(k for k in runs["a"] if k.name == "imu.csv")] != \
         runs["c"][next(k for k in runs["c"] if k.name == "imu.csv")]
 
@@ -125,7 +125,7 @@ def test_simulate_handheld_cli_writes_a_kitti_sequence_with_imu_and_gnss(tmp_pat
     assert "handheld outdoor" in proc.stdout and "max rate" in proc.stdout
     assert len(list((out / "velodyne").glob("*.bin"))) == 5
     for name in ("poses.txt", "times.txt", "calib.txt", "imu.csv", "imu_truth.csv", "gnss.csv",
-                 "gnss_truth.csv", "T_world_seq.txt"):
+                 "gnss_truth.csv", "T_world_seq.txt", "bursts.csv"):
         assert (out / name).is_file(), name
     np.testing.assert_allclose(np.loadtxt(out / "times.txt"), [0.0, 0.1, 0.2, 0.3, 0.4])
     assert "handheld walk (outdoor, seed 0)" in (out / "README.txt").read_text()

@@ -22,6 +22,7 @@ from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
+from lidar_slam.io.atomic import write_text_atomic
 from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
 from lidar_slam.sim.sensor import SensorModel, get_sensor
 from lidar_slam.sim.world import World, WorldParams, build_world
@@ -144,8 +145,8 @@ class Walk:
 
     @staticmethod
     def draw(rng: np.random.Generator) -> Walk:
-        tremor = np.stack([rng.uniform(np.radians(0.3), np.radians(1.0), (3, 2)),
-                           rng.uniform(1.0, 4.0, (3, 2)), rng.uniform(0, 2 * np.pi, (3, 2))],
+        tremor = np.stack([rng.uniform(np.radians(0.15), np.radians(0.5), (3, 2)),
+                           rng.uniform(0.8, 2.5, (3, 2)), rng.uniform(0, 2 * np.pi, (3, 2))],
                           axis=-1)
         return Walk(float(rng.uniform(1.1, 1.5)), float(rng.uniform(1.8, 2.0)),
                     float(rng.uniform(0.02, 0.035)), float(rng.uniform(0.02, 0.04)),
@@ -330,6 +331,15 @@ def build_site(kind: str, seed: int, sensor: SensorModel) -> Site:
     return Site(kind, world, path, world.terrain.height)
 
 
+def write_bursts(path: Path, bursts: list[Burst]) -> None:
+    """bursts.csv: kind,axis,t0_s,t1_s,amount (deg, m for a jolt),freq_hz, one line each."""
+    rows = "".join(
+        f"{b.kind},{b.axis},{b.t0_s:.4f},{b.t1_s:.4f},"
+        f"{b.amount if b.kind == 'jolt' else np.degrees(b.amount):.4f},{b.freq_hz:.4f}\n"
+        for b in bursts)
+    write_text_atomic(path, "kind,axis,t0_s,t1_s,amount,freq_hz\n" + rows)
+
+
 def clearance_m(world: World, traj: SmoothTrajectory, t0_s: float, t1_s: float,
                 step_s: float = 0.02) -> np.ndarray:
     """Distance (m) from the sensor to the nearest surface every step_s over [t0_s, t1_s]."""
@@ -365,9 +375,14 @@ def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_
             f"not included),\n  specific force {st.max_specific_force_mps2:.1f} m/s^2, speed "
             f"{st.max_speed_mps:.2f} m/s. Closest surface {gap.min():.2f} m. The sensor moves\n"
             "  along a cubic spline / RotationSpline through the motion's key poses (100 Hz),\n"
-            "  the same trajectory the IMU and the GNSS are measured on.\n")
+            "  the same trajectory the IMU and the GNSS are measured on.\n"
+            "bursts.csv: each quick move, kind (look: the arm swings about the body; flick,\n"
+            "  shake: the wrist turns; jolt: the hand shifts and back), axis (0 roll / ahead,\n"
+            "  1 pitch / left, 2 yaw / up), start and end (s), amount (deg, or m for a jolt),\n"
+            "  freq_hz (a shake's).\n")
     summary = write_sequence(out_dir, site.world, sensor, motion.trajectory, stamps,
                              motion.trajectory(stamps), seed, np.eye(4), world_s, on_scan, imu,
                              gnss, motion=text)
+    write_bursts(Path(out_dir) / "bursts.csv", motion.bursts)
     log.info("handheld %s seed %d: %s", world_kind, seed, st)
     return summary, st

@@ -15,7 +15,7 @@ log = logging.getLogger("lidar_slam")
 
 SIMULATE_OUTPUTS = ("velodyne", "velodyne_times", "poses.txt", "times.txt", "calib.txt",
                     "README.txt", "imu.csv", "imu_truth.csv", "gnss.csv", "gnss_truth.csv",
-                    "T_world_seq.txt")
+                    "T_world_seq.txt", "bursts.csv")
 
 
 @dataclass(frozen=True)
