@@ -42,9 +42,9 @@ class IndoorLayout:
 
     @staticmethod
     def draw(rng: np.random.Generator) -> IndoorLayout:
-        """A seeded layout: a 16-22 x 8-11 m ring, corridors 3.0-3.6 m wide."""
+        """A seeded layout: a 16-22 x 8-11 m ring, corridors 3.2-4.0 m wide."""
         return IndoorLayout(float(rng.uniform(16.0, 22.0)), float(rng.uniform(8.0, 11.0)),
-                            float(rng.uniform(3.0, 3.6)), float(rng.uniform(4.0, 5.5)),
+                            float(rng.uniform(3.2, 3.6)), float(rng.uniform(4.0, 5.5)),
                             float(rng.uniform(6.0, 8.0)), float(rng.uniform(2.9, 3.4)))
 
 
@@ -128,48 +128,85 @@ class _Interior:
             self.buf["pole"].add(*_box(x, y, 0.0, side, side, 0.0, self.lay.ceiling_m))
         self.count["pillar"] += 1
 
+    def dressing(self, a: tuple[float, float], b: tuple[float, float], side: int) -> None:
+        """Pilasters, cabinets and benches against the wall a-b, on its left (side=+1) or
+        right (-1) face, kept 1.2 m from the path: no two stretches of corridor alike."""
+        rng = self.rng
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        length = float(np.linalg.norm(b - a))
+        u = (b - a) / length
+        normal = np.array([-u[1], u[0]]) * side
+        yaw = float(np.arctan2(u[1], u[0]))
+        s = float(rng.uniform(0.5, 2.5))
+        while s < length - 0.5:
+            kind = rng.choice(["pilaster", "cabinet", "bench"], p=[0.4, 0.35, 0.25])
+            width, depth, height = {"pilaster": (rng.uniform(0.3, 0.6), 0.25, self.lay.ceiling_m),
+                                    "cabinet": (rng.uniform(0.6, 1.6), 0.45,
+                                                rng.uniform(0.9, 2.0)),
+                                    "bench": (rng.uniform(1.2, 2.0), 0.4, 0.45)}[kind]
+            c = a + u * s + normal * (WALL_M / 2 + depth / 2)
+            if self.clear(_box_footprint(*c, yaw, width, depth, 0.2), 1.2):
+                cls = "facade" if kind == "pilaster" else "clutter"
+                self.buf[cls].add(*_box(*c, yaw, width, depth, 0.0, height))
+                self.count["furniture"] += 1
+            s += float(rng.uniform(1.5, 4.5))
+
     def build(self) -> tuple[np.ndarray, np.ndarray]:
         """Everything; returns the interior's bounds (xy min, xy max)."""
         lay, rng = self.lay, self.rng
-        L, W, h = lay.length_m, lay.width_m, lay.corridor_m / 2
+        L, W = lay.length_m, lay.width_m
+        # Half-widths of the corridor's four sides (bottom, right, top, left) differ.
+        hb, hr, ht, hl = lay.corridor_m / 2 + rng.uniform(0.0, 0.4, 4)
         D, H = lay.room_depth_m, lay.hall_depth_m
-        lo = np.array([-h - D, -h - H])
-        hi = np.array([L + h + D, W + h + D])
+        lo = np.array([-hl - D, -hb - H])
+        hi = np.array([L + hr + D, W + ht + D])
         # The envelope, closed.
         for a, b in (((lo[0], lo[1]), (hi[0], lo[1])), ((hi[0], lo[1]), (hi[0], hi[1])),
                      ((hi[0], hi[1]), (lo[0], hi[1])), ((lo[0], hi[1]), (lo[0], lo[1]))):
             self.wall(a, b)
         # The inner block: its ring walls with doors, split into rooms by partitions.
+        x0, x1, y0, y1 = hl, L - hr, hb, W - ht
+        inner = [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)),
+                 ((x0, y1), (x0, y0))]
+        self.wall(*inner[0], self.doors_along(x1 - x0))
+        self.wall(*inner[1], [float(rng.uniform(1.5, y1 - y0 - 1.5))]
+                  if y1 - y0 > 3.2 and rng.random() < 0.5 else [])
+        self.wall(*inner[2], self.doors_along(x1 - x0))
+        self.wall(*inner[3], [float(rng.uniform(1.5, y1 - y0 - 1.5))]
+                  if y1 - y0 > 3.2 else [])
         n_rooms = int(rng.integers(2, 4))
-        xs = np.linspace(h, L - h, n_rooms + 1)
-        self.wall((h, h), (L - h, h), self.doors_along(L - 2 * h))
-        self.wall((L - h, W - h), (h, W - h), self.doors_along(L - 2 * h))
-        self.wall((h, W - h), (h, h), [float(rng.uniform(1.5, W - 2 * h - 1.5))]
-                  if W - 2 * h > 3.2 else [])
-        self.wall((L - h, h), (L - h, W - h))
+        xs = np.sort(np.r_[x0, rng.uniform(x0 + 3.0, x1 - 3.0, n_rooms - 1), x1])
         for x in xs[1:-1]:
-            self.wall((x, h), (x, W - h), [float(rng.uniform(1.2, max(1.3, W - 2 * h - 1.2)))])
-        for x0, x1 in zip(xs[:-1], xs[1:]):
-            self.furniture(np.array([x0, h]), np.array([x1, W - h]), 4, 1.0)
+            self.wall((x, y0), (x, y1), [float(rng.uniform(1.2, max(1.3, y1 - y0 - 1.2)))])
+        for xa, xb in zip(xs[:-1], xs[1:]):
+            self.furniture(np.array([xa, y0]), np.array([xb, y1]), 4, 1.0)
         # Rooms behind the corridor's outer walls on three sides; the hall on y < 0.
-        self.wall((L + h, -h), (L + h, W + h), self.doors_along(W + 2 * h))
-        self.wall((L + h, W + h), (-h, W + h), self.doors_along(L + 2 * h))
-        self.wall((-h, W + h), (-h, -h), self.doors_along(W + 2 * h))
-        for y in np.linspace(-h, W + h, 3)[1:-1]:
-            self.wall((L + h, y), (hi[0], y), [D / 2])
-            self.wall((lo[0], y), (-h, y), [D / 2])
-        for x in np.linspace(-h, L + h, max(2, int((L + 2 * h) // 5)) + 1)[1:-1]:
-            self.wall((x, W + h), (x, hi[1]), [D / 2])
-        for a, b in (((L + h, -h), (hi[0], W + h)), ((-h, W + h), (hi[0], hi[1])),
-                     ((lo[0], -h), (-h, W + h))):
+        outer = [((L + hr, -hb), (L + hr, W + ht)), ((L + hr, W + ht), (-hl, W + ht)),
+                 ((-hl, W + ht), (-hl, -hb))]
+        for a, b in outer:
+            self.wall(a, b, self.doors_along(float(np.linalg.norm(np.subtract(b, a)))))
+        y = float(rng.uniform(0.3, 0.7) * (W + ht + hb) - hb)
+        self.wall((L + hr, y), (hi[0], y), [D / 2])
+        y = float(rng.uniform(0.3, 0.7) * (W + ht + hb) - hb)
+        self.wall((lo[0], y), (-hl, y), [D / 2])
+        x = -hl + float(rng.uniform(3.0, 6.0))
+        while x < L + hr - 3.0:
+            self.wall((x, W + ht), (x, hi[1]), [D / 2])
+            x += float(rng.uniform(3.5, 7.0))
+        for a, b in (((L + hr, -hb), (hi[0], W + ht)), ((-hl, W + ht), (hi[0], hi[1])),
+                     ((lo[0], -hb), (-hl, W + ht))):
             self.furniture(np.array(a), np.array(b), 10, 1.0)
+        for a, b in inner:  # the corridor side of a wall a-b is on its right, then left
+            self.dressing(a, b, -1)
+        for a, b in outer:
+            self.dressing(a, b, 1)
         # The hall: a row or two of pillars, desks and benches, open to the corridor.
-        self.wall((lo[0], -h), (-h, -h), [D / 2])
-        self.wall((L + h, -h), (hi[0], -h), [D / 2])
-        for y in (-h - H / 3, -h - 2 * H / 3)[: int(rng.integers(1, 3))]:
+        self.wall((lo[0], -hb), (-hl, -hb), [D / 2])
+        self.wall((L + hr, -hb), (hi[0], -hb), [D / 2])
+        for y in (-hb - H / 3, -hb - 2 * H / 3)[: int(rng.integers(1, 3))]:
             for x in np.arange(rng.uniform(0.5, 2.5), L, rng.uniform(3.5, 5.5)):
                 self.pillar(float(x), float(y), 1.0)
-        self.furniture(np.array([-h, lo[1]]), np.array([L + h, -h]), 8, 1.5)
+        self.furniture(np.array([-hl, lo[1]]), np.array([L + hr, -hb]), 8, 1.5)
         return lo, hi
 
 
