@@ -156,11 +156,12 @@ class Walk:
 
 
 def draw_bursts(rng: np.random.Generator, start_s: float, end_s: float) -> list[Burst]:
-    """Bursts one after another from start_s to end_s, 0.8-2.5 s apart."""
+    """Bursts one after another from start_s to end_s, 0.5-2 s apart. Shakes are the hardest
+    for a constant-velocity model: 3-5 Hz, so the rate turns over within a sweep."""
     out, t = [], start_s + float(rng.uniform(0.3, 0.8))
     deg = np.radians
     while t < end_s:
-        kind = rng.choice(["look", "flick", "shake", "jolt"], p=[0.3, 0.35, 0.2, 0.15])
+        kind = rng.choice(["look", "flick", "shake", "jolt"], p=[0.25, 0.3, 0.3, 0.15])
         sign = rng.choice([-1.0, 1.0])
         if kind == "look":
             a = deg(rng.uniform(45.0, 110.0))
@@ -176,11 +177,12 @@ def draw_bursts(rng: np.random.Generator, start_s: float, end_s: float) -> list[
                       rng.uniform(0.0, 0.3), rng.uniform(0.18, 0.3),
                       sign * rng.uniform(0.03, 0.08))
         else:
+            freq = rng.uniform(3.0, 5.0)
             b = Burst("shake", int(rng.integers(3)), t, rng.uniform(0.15, 0.3),
-                      rng.uniform(0.3, 0.9), rng.uniform(0.15, 0.3),
-                      sign * deg(rng.uniform(4.0, 9.0)), rng.uniform(2.0, 3.2))
+                      rng.uniform(0.5, 1.5), rng.uniform(0.15, 0.3),
+                      sign * deg(rng.uniform(120.0, 170.0)) / (2 * np.pi * freq), freq)
         out.append(b)
-        t = b.t1_s + float(rng.uniform(0.8, 2.5))
+        t = b.t1_s + float(rng.uniform(0.5, 2.0))
     return out
 
 
