@@ -17,12 +17,21 @@ class Sensor(str, Enum):
     os1_64 = "os1-64"
 
 
+class Motion(str, Enum):
+    handheld = "handheld"
+
+
+class WorldKind(str, Enum):
+    indoor = "indoor"
+    outdoor = "outdoor"
+
 
 @app.command()
 @reports_errors
 def simulate(
-    poses: list[Path] = typer.Argument(..., help="KITTI pose file(s) (left-camera frame, as "
-                                                 "poses/XX.txt); several: one sequence each."),
+    poses: Optional[list[Path]] = typer.Argument(None, help="KITTI pose file(s) (left-camera "
+                                                 "frame, as poses/XX.txt); several: one "
+                                                 "sequence each. None with --motion."),
     out: Path = typer.Option(..., "--out", "-o",
                              help="KITTI-layout sequence folder to write; with several POSES, "
                                   "the folder of one sequence per file (OUT/<name>)."),
@@ -31,7 +40,8 @@ def simulate(
                                               "default: ../calib/<name>.txt beside POSES."),
     times: Optional[Path] = typer.Option(None, "--times", help="Stamps (s); default: "
                                          "../times/<name>.txt beside POSES, else 10 Hz."),
-    sensor: Sensor = typer.Option(Sensor.hdl64, "--sensor", help="Lidar model to simulate."),
+    sensor: Optional[Sensor] = typer.Option(None, "--sensor", help="Lidar model to simulate "
+                                            "(default hdl64; os1-64 with --motion handheld)."),
     start: int = typer.Option(0, "--start", min=0, help="First pose to simulate (0-based)."),
     n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1,
                                           help="Number of scans (default: to the last pose)."),
@@ -60,8 +70,18 @@ def simulate(
     gnss_lever_arm: Optional[str] = typer.Option(
         None, "--gnss-lever-arm", help="Antenna position 'x,y,z' (m) in the lidar frame; "
         "default 0,0,0."),
+    motion: Optional[Motion] = typer.Option(
+        None, "--motion", help="handheld: a person walking laps with the lidar in the hand "
+        "(quick looks, flicks, shakes: up to 180 deg/s, 10 m/s^2) through --world; no POSES."),
+    world: Optional[WorldKind] = typer.Option(None, "--world", help="With --motion: indoor "
+                                              "(rooms, corridors, a hall; default) or outdoor "
+                                              "(a plaza among streets and buildings)."),
+    duration_s: Optional[float] = typer.Option(None, "--duration-s", min=0.5,
+                                               help="With --motion: seconds of walk (default "
+                                               "60; one scan per sweep from t = 0)."),
 ) -> None:
-    """Ray-cast a lidar along a real trajectory through a procedural street world.
+    """Ray-cast a lidar along a real trajectory through a procedural street world, or along a
+    handheld walk (--motion handheld) through a built interior or outdoor world.
 
     POSES: KITTI pose files (left-camera frame, as poses/XX.txt). With several, each becomes
     OUT/<name>, simulated in parallel when Ray is installed (`lidar-slam[cluster]`).
@@ -71,6 +91,21 @@ def simulate(
     rates = (imu_rate if imu else None, gnss_rate if gnss else None,
              _numbers(imu_extrinsic, 6, "--imu-extrinsic"), _numbers(gnss_datum, 3, "--gnss-datum"),
              _numbers(gnss_lever_arm, 3, "--gnss-lever-arm"))
+    if motion is not None:
+        others = {"POSES": poses, "--calib": calib, "--times": times, "--start": start or None,
+                  "--n-scans": n_scans, "--address": address, "--workers": workers}
+        given = [name for name, value in others.items() if value]
+        if given:
+            raise fail(f"--motion {motion.value} walks its own path in its own world: "
+                       f"{', '.join(given)} not taken (--duration-s sets the length)")
+        _handheld(out, world or WorldKind.indoor, duration_s or 60.0,
+                  (sensor or Sensor.os1_64).value, seed, overwrite, rates)
+        return
+    if world is not None or duration_s is not None:
+        raise fail("--world and --duration-s go with --motion handheld")
+    if not poses:
+        raise fail("simulate needs POSES (KITTI pose files) or --motion handheld")
+    sensor = sensor or Sensor.hdl64
     if len(poses) == 1:
         typer.echo(simulate_one(SimulateJob(str(poses[0]), str(out), _str(calib), _str(times),
                                             sensor.value, start, n_scans, seed, overwrite,
@@ -88,6 +123,17 @@ def simulate(
                         None, sensor.value, start, n_scans, seed, overwrite, *rates)
             for p, name in zip(paths, names)]
     simulate_many(jobs, names, address, workers, on_done=typer.echo)
+
+
+def _handheld(out: Path, world: WorldKind, duration_s: float, sensor: str, seed: int,
+              overwrite: bool, rates: tuple) -> None:
+    """One handheld walk (lidar_slam.sim.handheld) into out."""
+    from lidar_slam.sim.jobs import HandheldJob, simulate_handheld_one
+
+    if world is WorldKind.indoor and rates[1] is not None:
+        raise fail("--gnss needs --world outdoor: a receiver indoors has no fix")
+    typer.echo(simulate_handheld_one(HandheldJob(str(out), world.value, duration_s, sensor,
+                                                 seed, overwrite, *rates)))
 
 
 def _numbers(text: str | None, n: int, flag: str) -> tuple[float, ...] | None:

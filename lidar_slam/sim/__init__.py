@@ -3,7 +3,8 @@
 Modules: sensor (lidar models, poses between stamps), world (the street world), sequence (sweeps
 and KITTI-layout sequences, KITTI ground truth), inertial (a smooth trajectory, and the IMU and
 GNSS measured along it), jobs (`lidar-slam simulate`: one sequence per pose file, several on the
-Ray fleet of `batch`).
+Ray fleet of `batch`), handheld (`--motion handheld`: a walk with the lidar in the hand, no pose
+file) and indoor (the built interior it walks through).
 
 Conventions (also written into every sequence's README):
 - Input poses are T_world_lidar (K, 4, 4) at stamps_s (K,). The world is built along the stretch

@@ -1,6 +1,6 @@
 """`lidar-slam simulate` as jobs: one sequence per KITTI pose file, several on the Ray fleet of
-`batch` (lidar_slam.batch.fan_out), else one after another. Nothing here imports typer: a Ray
-worker imports this module."""
+`batch` (lidar_slam.batch.fan_out), else one after another; or one handheld walk. Nothing here
+imports typer: a Ray worker imports this module."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ log = logging.getLogger("lidar_slam")
 
 SIMULATE_OUTPUTS = ("velodyne", "velodyne_times", "poses.txt", "times.txt", "calib.txt",
                     "README.txt", "imu.csv", "imu_truth.csv", "gnss.csv", "gnss_truth.csv",
-                    "T_world_seq.txt")
+                    "T_world_seq.txt", "bursts.csv")
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,6 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
     )
     from lidar_slam.run.outdir import prepare_out_dir, scan_range
     from lidar_slam.run.progress import progress as make_progress
-    from lidar_slam.sim.inertial import GnssOptions, ImuOptions
     from lidar_slam.sim.sequence import simulate_sequence
 
     poses, out = Path(job.poses), Path(job.out)
@@ -71,13 +70,7 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
         raise RunFailed(f"{times}: {len(stamps)} stamps for {len(poses_lidar)} poses")
     total = scan_range(poses, job.start, job.n_scans, len(poses_lidar), "pose",
                        count=str(len(poses_lidar)))
-    imu = gnss = None
-    if job.imu_rate_hz is not None:
-        imu = ImuOptions(rate_hz=job.imu_rate_hz, T_lidar_imu=_extrinsic(job.imu_extrinsic))
-    if job.gnss_rate_hz is not None:
-        gnss = GnssOptions(rate_hz=job.gnss_rate_hz,
-                           datum=job.gnss_datum or GnssOptions().datum,
-                           lever_arm_m=job.gnss_lever_arm or GnssOptions().lever_arm_m)
+    imu, gnss = _inertial(job)
     bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
     try:
         summary = simulate_sequence(poses_lidar, stamps, out, sensor=job.sensor, seed=job.seed,
@@ -89,6 +82,63 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
                                                        (summary.n_gnss, "GNSS fixes")) if n)
     return (f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
             f"{summary.seconds_per_scan:.3f} s/scan{extra}) into {out}")
+
+
+@dataclass(frozen=True)
+class HandheldJob:
+    """`simulate --motion handheld`: a walk through a seeded world, no pose file."""
+
+    out: str
+    world: str = "indoor"
+    duration_s: float = 60.0
+    sensor: str = "os1-64"
+    seed: int = 0
+    overwrite: bool = False
+    imu_rate_hz: float | None = None
+    gnss_rate_hz: float | None = None
+    imu_extrinsic: tuple[float, ...] | None = None
+    gnss_datum: tuple[float, ...] | None = None
+    gnss_lever_arm: tuple[float, ...] | None = None
+
+
+def simulate_handheld_one(job: HandheldJob, progress: bool = True) -> str:
+    """Simulate one handheld walk into job.out (the --out rule applies); returns the line to
+    print, with the realised motion maxima."""
+    from lidar_slam.run.outdir import prepare_out_dir
+    from lidar_slam.run.progress import progress as make_progress
+    from lidar_slam.sim.handheld import simulate_handheld
+    from lidar_slam.sim.sensor import get_sensor
+
+    out = Path(job.out)
+    prepare_out_dir(out, SIMULATE_OUTPUTS, job.overwrite)
+    imu, gnss = _inertial(job)
+    total = int(round(job.duration_s * get_sensor(job.sensor).rate_hz))
+    bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
+    try:
+        summary, st = simulate_handheld(out, job.world, job.seed, job.duration_s, job.sensor,
+                                        imu, gnss, on_scan=bar.tick)
+    finally:
+        bar.close()
+    extra = "".join(f", {n} {what}" for n, what in ((summary.n_imu, "IMU samples"),
+                                                       (summary.n_gnss, "GNSS fixes")) if n)
+    return (f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
+            f"{summary.seconds_per_scan:.3f} s/scan{extra}) into {out}: handheld "
+            f"{job.world}, {st.distance_m:.0f} m, {st.laps:.2f} laps, max rate "
+            f"{st.max_rate_dps:.0f} deg/s, max acceleration {st.max_accel_mps2:.1f} m/s^2")
+
+
+def _inertial(job: SimulateJob | HandheldJob):
+    """The job's ImuOptions and GnssOptions (None for those it does not simulate)."""
+    from lidar_slam.sim.inertial import GnssOptions, ImuOptions
+
+    imu = gnss = None
+    if job.imu_rate_hz is not None:
+        imu = ImuOptions(rate_hz=job.imu_rate_hz, T_lidar_imu=_extrinsic(job.imu_extrinsic))
+    if job.gnss_rate_hz is not None:
+        gnss = GnssOptions(rate_hz=job.gnss_rate_hz,
+                           datum=job.gnss_datum or GnssOptions().datum,
+                           lever_arm_m=job.gnss_lever_arm or GnssOptions().lever_arm_m)
+    return imu, gnss
 
 
 def _extrinsic(xyz_rpy_deg: tuple[float, ...] | None):

@@ -109,6 +109,7 @@ class SimSummary:
     gnss: GnssOptions | None = None
     n_imu: int = 0
     n_gnss: int = 0
+    motion: str | None = None  # the README's account of the poses; None: KITTI trajectory
 
 
 def write_calib(path: Path, Tr_cam_lidar: np.ndarray) -> None:
@@ -132,15 +133,19 @@ def _write_readme(out: Path, summary: SimSummary) -> None:
         "poses.txt: KITTI camera-frame poses P_i = Tr @ T_seq_lidar_i @ inv(Tr) (Tr from\n"
         "  calib.txt); read back with inv(Tr) @ P_i @ Tr. The sequence frame is the lidar "
         "frame of\n"
-        "  scan 0 (P_0 = I). These are the poses actually simulated (z and roll/pitch from the\n"
-        "  fitted terrain), not the input trajectory.\n" + _inertial_readme(summary))
+        "  scan 0 (P_0 = I). " + (summary.motion or _KITTI_POSES) + _inertial_readme(summary))
+
+
+_KITTI_POSES = ("These are the poses actually simulated (z and roll/pitch from the\n"
+                "  fitted terrain), not the input trajectory.\n")
 
 
 def _inertial_readme(summary: SimSummary) -> str:
     if summary.imu is None and summary.gnss is None:
         return ""
+    keys = "poses.txt" if summary.motion is None else "the motion's key poses"
     text = ("Trajectory: a cubic spline through the positions and scipy's RotationSpline through\n"
-            "  the attitudes of poses.txt; the points, the IMU and the GNSS all come from it.\n"
+            f"  the attitudes of {keys}; the points, the IMU and the GNSS all come from it.\n"
             "  The world frame (T_world_seq.txt: the sequence frame in it, 12 numbers, row-major\n"
             "  3x4) is gravity-aligned, z up, gravity 9.81 m/s^2, and is read as ENU at the GNSS\n"
             "  datum.\n")
@@ -220,13 +225,29 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
     smooth = imu is not None or gnss is not None
     interp = _smooth(poses_world_lidar, stamps_s, start, stop, world, sensor) if smooth \
         else PoseInterpolator(stamps, poses)
+    return write_sequence(out_dir, world, sensor, interp, stamps, poses, seed, Tr, world_s,
+                          on_scan, imu, gnss, first_index=start)
+
+
+def write_sequence(out_dir: str | Path, world: World, sensor: SensorModel, interp,
+                   stamps: np.ndarray, poses: np.ndarray, seed: int, Tr: np.ndarray,
+                   world_s: float, on_scan: Callable[[int], None] | None = None,
+                   imu: ImuOptions | None = None, gnss: GnssOptions | None = None,
+                   first_index: int = 0, motion: str | None = None) -> SimSummary:
+    """Cast a sweep at each stamp (s) in world, the sensor moving as interp(times) ->
+    T_world_lidar (N, 4, 4), and write the KITTI-layout folder: scans, poses (T_world_lidar at
+    the stamps, (n, 4, 4)) as poses.txt, times, calib, and with imu / gnss (interp is then a
+    SmoothTrajectory) their files and T_world_seq.txt. Scan k draws its noise from the seed
+    and first_index + k; motion, when given, is the README's account of the poses."""
+    smooth = imu is not None or gnss is not None
     out = Path(out_dir)
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     (out / "velodyne_times").mkdir(exist_ok=True)
+    n = len(stamps)
     n_points = 0
     t1 = time.perf_counter()
-    for k in range(stop - start):
-        rng = np.random.default_rng([seed, 1, start + k])
+    for k in range(n):
+        rng = np.random.default_rng([seed, 1, first_index + k])
         scan = simulate_scan(world, sensor, interp, float(stamps[k]), rng)
         # Times first: a scan file never exists without its times (a killed simulate leaves
         # scans that a run reads correctly, never a half-written one).
@@ -238,8 +259,8 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
         if on_scan is not None:
             on_scan(k)
         if k % 100 == 0:
-            log.info("scan %d/%d: %d points", k, stop - start, len(scan.points))
-    per_scan = (time.perf_counter() - t1) / (stop - start)
+            log.info("scan %d/%d: %d points", k, n, len(scan.points))
+    per_scan = (time.perf_counter() - t1) / n
     T_world_seq = poses[0].copy()
     write_kitti_poses(out / "poses.txt", Tr @ (inverse(T_world_seq) @ poses) @ inverse(Tr))
     with atomic_path(out / "times.txt") as tmp:
@@ -258,9 +279,9 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
                               np.random.default_rng([seed, 3]))
         write_gnss(out, fixes)
         n_gnss = int((~fixes.dropped).sum())
-    summary = SimSummary(out, sensor, seed, stop - start, stamps, poses, T_world_seq, Tr,
-                         n_points / (stop - start), per_scan, world_s, world.n_triangles,
-                         world.n_objects, imu, gnss, n_imu, n_gnss)
+    summary = SimSummary(out, sensor, seed, n, stamps, poses, T_world_seq, Tr,
+                         n_points / n, per_scan, world_s, world.n_triangles,
+                         world.n_objects, imu, gnss, n_imu, n_gnss, motion)
     _write_readme(out, summary)
     return summary
 

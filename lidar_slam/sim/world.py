@@ -452,9 +452,19 @@ def build_world(poses_world_lidar: np.ndarray, sensor: str | SensorModel = "hdl6
     builder = _Builder(cl, terrain, params, np.random.default_rng([seed, 0]))
     builder.build()
     origin = np.r_[cl.xyz[:, :2].mean(0), ground[:, 2].mean()]
-    scene = o3d.t.geometry.RaycastingScene()
     meshes = {"ground": _ground_mesh(terrain, builder, reach)}
     meshes.update({c: b.arrays() for c, b in builder.buf.items()})
+    world = assemble_world(meshes, origin, terrain, cl, dict(builder.count))
+    log.info("world: %d triangles, objects %s, %.1f s", world.n_triangles, builder.count,
+             time.perf_counter() - t0)
+    return world
+
+
+def assemble_world(meshes: dict[str, tuple[np.ndarray, np.ndarray]], origin: np.ndarray,
+                   terrain: Terrain, centerline: Centerline, n_objects: dict) -> World:
+    """A World from triangle meshes per class (vertices (V, 3) world frame, triangles (T, 3)),
+    ray cast in the frame world minus origin (float32 precision near the scene)."""
+    scene = o3d.t.geometry.RaycastingScene()
     class_of_geometry, n_tri = [], 0
     for cls, (v, t) in meshes.items():
         if len(t) == 0:
@@ -466,6 +476,4 @@ def build_world(poses_world_lidar: np.ndarray, sensor: str | SensorModel = "hdl6
     cog = np.zeros(max(g for g, _ in class_of_geometry) + 1, dtype=np.int64)
     for g, c in class_of_geometry:
         cog[g] = c
-    log.info("world: %d triangles, objects %s, %.1f s", n_tri, builder.count,
-             time.perf_counter() - t0)
-    return World(scene, origin, terrain, cl, cog, n_tri, dict(builder.count))
+    return World(scene, origin, terrain, centerline, cog, n_tri, n_objects)
