@@ -15,7 +15,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from lidar_slam.errors import EXIT_INTERRUPTED, LidarSlamError, RunFailed
+from lidar_slam.errors import EXIT_INTERRUPTED, InputError, LidarSlamError, RunFailed
 from lidar_slam.run.outdir import RUN_OUTPUTS, discard_run, prepare_out_dir, scan_range
 from lidar_slam.run.progress import progress as make_progress
 from lidar_slam.run.signals import StopSignals
@@ -149,8 +149,7 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
 
 def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None):
     """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
-    against the scan stamps. Not yet used by
-    the estimator: read, checked and reported in summary.json."""
+    against the scan stamps and reported in summary.json; the IMU goes to the front-end."""
     from lidar_slam.io.inertial_input import load_inertial
 
     stamps = source.stamps if source.kind != "file" else None
@@ -211,11 +210,14 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
     resuming = _resuming(out, identity, overwrite, resume)
+    if resuming and inertial.imu is not None:
+        raise InputError(out, "cannot resume a run with an IMU: the IMU front-end's state is "
+                         "not in the checkpoint; rerun with --overwrite to start again")
     visualizer = open_viewer(viz, rrd)
     t0 = time.perf_counter()
     stop = StopSignals()
     with stop:  # from here on, a signal stops the run after the scan in hand
-        pipe = Pipeline(cfg, out, visualizer, resume=resuming)
+        pipe = Pipeline(cfg, out, visualizer, resume=resuming, imu=inertial.imu)
         pipe.frames_total = total
         done = 0
         if resuming:
@@ -242,6 +244,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                         "config_overlay": str(config) if config is not None else None,
                         "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
                         "input_notes": source.input_notes, **inertial.summary,
+                        **({} if pipe.inertial is None
+                           else {"imu_frontend": pipe.inertial.summary()}),
                         "start": start,
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}
