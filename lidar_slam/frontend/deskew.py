@@ -65,34 +65,45 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarra
 class SweepMotion:
     """The sensor's motion through a sweep as poses T_ref_t (K, 4, 4) at knot times t (K,),
     seconds relative to the reference instant, strictly increasing: a point captured at time t
-    is moved with the pose interpolated between the knots around it (slerp and lerp), held
-    constant past the end knots."""
+    is moved with the pose interpolated between the knots around it (rotation about the
+    segment's fixed axis, translation linearly), held constant past the end knots."""
 
     def __init__(self, times_s: np.ndarray, T_ref_t: np.ndarray):
-        from scipy.spatial.transform import Rotation, Slerp  # scipy only with an IMU
-
         self.times_s = np.asarray(times_s, dtype=np.float64)
         self.T_ref_t = np.asarray(T_ref_t, dtype=np.float64)
         if len(self.times_s) < 2 or np.any(np.diff(self.times_s) <= 0):
             raise ValueError("a sweep motion needs at least two knots in increasing time")
-        self._slerp = Slerp(self.times_s, Rotation.from_matrix(self.T_ref_t[:, :3, :3]))
+        R = self.T_ref_t[:, :3, :3]
+        # Per segment: the rotation vector from its start knot to its end (in the start's frame)
+        self._rotvec = rotvec_from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:])
+
+    def _segment(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.clip(times_s, self.times_s[0], self.times_s[-1])
+        i = np.clip(np.searchsorted(self.times_s, t, side="right") - 1, 0, len(self.times_s) - 2)
+        s = (t - self.times_s[i]) / (self.times_s[i + 1] - self.times_s[i])
+        return i, s
 
     def apply(self, points: np.ndarray, times_s: np.ndarray) -> np.ndarray:
         """Points (N,3) captured at times_s (relative to the reference instant), in the sensor
         frame at the reference instant."""
-        t = np.clip(times_s, self.times_s[0], self.times_s[-1])
-        out = self._slerp(t).apply(points)
-        for j in range(3):
-            out[:, j] += np.interp(t, self.times_s, self.T_ref_t[:, j, 3])
+        i, s = self._segment(np.asarray(times_s, dtype=np.float64))
+        v = self._rotvec[i] * s[:, None]  # rotation within the segment, per point (Rodrigues)
+        theta = np.linalg.norm(v, axis=1)
+        safe = np.where(theta > 1e-12, theta, 1.0)
+        k = v / safe[:, None]
+        cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        p = (points * cos + np.cross(k, points) * sin
+             + k * (np.einsum("ij,ij->i", k, points)[:, None] * (1.0 - cos)))
+        T0, T1 = self.T_ref_t[i], self.T_ref_t[i + 1]
+        out = np.einsum("nij,nj->ni", T0[:, :3, :3], p)
+        out += T0[:, :3, 3] + s[:, None] * (T1[:, :3, 3] - T0[:, :3, 3])
         return out
 
     def T_ref_at(self, t_s: float) -> np.ndarray:
         """The sensor's pose at t_s (relative to the reference instant) in the reference frame."""
-        t = float(np.clip(t_s, self.times_s[0], self.times_s[-1]))
-        T = np.eye(4)
-        T[:3, :3] = self._slerp([t]).as_matrix()[0]
-        T[:3, 3] = [np.interp(t, self.times_s, self.T_ref_t[:, j, 3]) for j in range(3)]
-        return T
+        i, s = self._segment(np.array([t_s], dtype=np.float64))
+        i, s = int(i[0]), float(s[0])
+        return interpolate(self.T_ref_t[i], self.T_ref_t[i + 1], s)
 
 
 @dataclass(frozen=True)

@@ -125,6 +125,8 @@ class ImuFrontend:
         self.n_diverged = 0  # fallbacks: prediction and registration disagree, or gtsam failed
         self.n_inits = 0
         self.first_imu_s: float | None = None
+        # Per IMU-predicted scan: how far the prediction was from the registration (m, deg).
+        self.prediction_error: list[tuple[float, float]] = []
         identity = np.array_equal(self.T_lidar_imu, np.eye(4))
         log.info("IMU front-end: %d samples %s, T_lidar_imu %s", len(samples), samples.source,
                  "identity (imu.T_lidar_imu, the config's default)" if identity
@@ -177,8 +179,10 @@ class ImuFrontend:
             self._initialise()
             return odom
         d = inverse(guess) @ T
-        if (np.linalg.norm(d[:3, 3]) > MAX_DISAGREEMENT_M
-                or rotation_angle_deg(d) > MAX_DISAGREEMENT_DEG):
+        self.prediction_error.append((float(np.linalg.norm(d[:3, 3])),
+                                      float(rotation_angle_deg(d))))
+        if (self.prediction_error[-1][0] > MAX_DISAGREEMENT_M
+                or self.prediction_error[-1][1] > MAX_DISAGREEMENT_DEG):
             self.n_diverged += 1
             log.warning("%s: IMU prediction %.2f m / %.1f deg off the registration: IMU "
                         "initialised again", deskewed.scan.source, np.linalg.norm(d[:3, 3]),
@@ -230,11 +234,19 @@ class ImuFrontend:
 
     def summary(self) -> dict:
         """What the IMU front-end did, for summary.json."""
+        err = np.array(self.prediction_error).reshape(-1, 2)
         return {"scans_deskewed_by_imu": self.n_imu,
                 "scans_constant_velocity": self.n_constant_velocity,
                 "fallbacks_imu_gap": self.n_gaps, "fallbacks_diverged": self.n_diverged,
                 "initialisations": self.n_inits,
                 "first_imu_scan_s": self.first_imu_s,
+                # how far kiss-icp moved the IMU's prediction: median and max, m and deg
+                "prediction_error_m": (None if not len(err) else
+                                       [round(float(np.median(err[:, 0])), 4),
+                                        round(float(err[:, 0].max()), 4)]),
+                "prediction_error_deg": (None if not len(err) else
+                                         [round(float(np.median(err[:, 1])), 3),
+                                          round(float(err[:, 1].max()), 3)]),
                 "gyro_bias_radps": np.round(self.bias.gyroscope(), 6).tolist(),
                 "accel_bias_mps2": np.round(self.bias.accelerometer(), 5).tolist()}
 
