@@ -145,3 +145,36 @@ def test_a_sweep_motion_at_constant_velocity_deskews_as_the_constant_velocity_mo
                                atol=1e-9)
     np.testing.assert_allclose(motion.T_ref_at(-ref), interpolate(np.eye(4), T, -ref / period),
                                atol=1e-12)
+
+
+def test_a_run_with_an_imu_resumed_from_its_checkpoint_ends_as_the_uninterrupted_run(walks,
+                                                                                       tmp_path):
+    """The IMU front-end's state is in the checkpoint (its smoother rebuilt by replaying what
+    it was fed since it was made): a run checkpointed mid-walk, with the IMU running, and
+    resumed from there ends with every pose within 1e-6 m of the run never stopped."""
+    from lidar_slam.run import checkpoint
+
+    seq, xyz_rpy = walks["rotated"]
+    cfg = cfg_with(xyz_rpy)
+    src = open_source(seq)
+    samples = load_inertial(seq, src.kind, src.stamps, imu_enabled=True,
+                            gnss_enabled=False).imu
+    uninterrupted, *_ = run(seq, cfg)
+    out, stop = tmp_path / "run", 33
+    checkpoint.start_run(out, checkpoint.describe_run(seq, 0, None, None, cfg))
+    first = pipeline.Pipeline(cfg, out, imu=samples)
+    for scan in src.scans(0, stop):
+        first.process(scan)
+    assert first.inertial.nav is not None and len(first.inertial._journal) >= 3
+    checkpoint.save(out, first, first.loops_applied_upto)
+    first.close()
+    resumed = pipeline.Pipeline(cfg, out, resume=True, imu=samples)
+    try:
+        assert checkpoint.restore(out, resumed) == stop
+        for scan in src.scans(stop, N_SCANS - stop):
+            resumed.process(scan)
+        poses = np.array(resumed.finish().odom_poses)
+    finally:
+        resumed.close()
+    assert resumed.inertial.n_diverged == 0 and resumed.inertial.n_imu > N_SCANS - 10
+    np.testing.assert_allclose(poses, uninterrupted, atol=1e-6)

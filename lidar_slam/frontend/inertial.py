@@ -127,6 +127,8 @@ class ImuFrontend:
         self.first_imu_s: float | None = None
         # Per IMU-predicted scan: how far the prediction was from the registration (m, deg).
         self.prediction_error: list[tuple[float, float]] = []
+        self._base: dict | None = None  # the state before the smoother was made (checkpoint)
+        self._journal: list[tuple[float, np.ndarray, np.ndarray | None]] = []  # _learn since
         identity = np.array_equal(self.T_lidar_imu, np.eye(4))
         log.info("IMU front-end: %d samples %s, T_lidar_imu %s", len(samples), samples.source,
                  "identity (imu.T_lidar_imu, the config's default)" if identity
@@ -171,13 +173,29 @@ class ImuFrontend:
         if not odom.registered:
             return odom  # its pose is the prediction: nothing learnt, the state stays
         t_ref = deskewed.scan.stamp_s + deskewed.ref_s
-        T = odom.T_world_ref
         if guess is not None and deskewed.motion is not None:
             odom = self._at_stamp(deskewed, odom, guess)
+        before = self._light_state()
+        smoother = self._smoother
+        self._learn(t_ref, odom.T_world_ref, guess, deskewed.scan.source)
+        # The smoother cannot be saved: a checkpoint keeps the state before the call that made
+        # it and every call since, and restore() replays them (lidar_slam.run.checkpoint).
+        if self._smoother is None:
+            self._base, self._journal = None, []
+        elif self._smoother is not smoother:
+            self._base, self._journal = before, [(t_ref, odom.T_world_ref, guess)]
+        else:
+            self._journal.append((t_ref, odom.T_world_ref, guess))
+        return odom
+
+    def _learn(self, t_ref: float, T: np.ndarray, guess: np.ndarray | None,
+               source: str = "") -> None:
+        """The registered pose T (kiss-icp's world) at t_ref into the smoother, or into the
+        initialisation while there is none; guess: what the IMU predicted there."""
         if self.nav is None:
             self._pending.append((t_ref, T))
             self._initialise()
-            return odom
+            return
         d = inverse(guess) @ T
         self.prediction_error.append((float(np.linalg.norm(d[:3, 3])),
                                       float(rotation_angle_deg(d))))
@@ -185,11 +203,11 @@ class ImuFrontend:
                 or self.prediction_error[-1][1] > MAX_DISAGREEMENT_DEG):
             self.n_diverged += 1
             log.warning("%s: IMU prediction %.2f m / %.1f deg off the registration: IMU "
-                        "initialised again", deskewed.scan.source, np.linalg.norm(d[:3, 3]),
+                        "initialised again", source, np.linalg.norm(d[:3, 3]),
                         rotation_angle_deg(d))
             self._restart()
             self._pending.append((t_ref, T))
-            return odom
+            return
         k = self._k + 1
         pim = self.stream.preintegrate(self.t_last, t_ref, self.params, self.bias)
         pred = pim.predict(self.nav, self.bias)
@@ -207,13 +225,12 @@ class ImuFrontend:
         except RuntimeError as exc:
             self.n_diverged += 1
             log.warning("%s: IMU smoother failed (%r): IMU initialised again",
-                        deskewed.scan.source, exc)
+                        source, exc)
             self._restart()
             self._pending.append((t_ref, T))
-            return odom
+            return
         self._k, self.t_last, self.T_Wo_L = k, t_ref, T
         self._read_state(k)
-        return odom
 
     def _at_stamp(self, deskewed: DeskewedScan, odom: OdometryResult, guess: np.ndarray
                   ) -> OdometryResult:
@@ -256,6 +273,7 @@ class ImuFrontend:
             self.R_G_Wo = (self.nav.pose().matrix() @ self.T_imu_lidar
                            @ inverse(self.T_Wo_L))[:3, :3]
         self.nav, self._smoother, self._pending = None, None, []
+        self._base, self._journal = None, []
 
     def _covers(self, t0_s: float, t1_s: float) -> bool:
         """Whether the IMU samples span [t0_s, t1_s] with no gap (GAP_PERIODS periods)."""
@@ -292,15 +310,15 @@ class ImuFrontend:
             times[-1] = b  # exactly, not the sum of the steps
         return np.asarray(times), np.asarray(poses) @ self.T_imu_lidar
 
-    def _update(self, graph, values, k: int, n_new: int = 1) -> None:
-        """Add factors and states up to state k to the smoother (restarting it from state k's
-        marginals when it holds RESET_EVERY states)."""
-        if self._smoother is None or self._n_states >= RESET_EVERY:
-            old, self._smoother, self._n_states = self._smoother, gtsam.ISAM2(_isam_params()), 0
-            if old is not None:  # the last state before these, with its marginals as priors
+    def _update(self, graph, values, k: int, n_new: int = 1, fresh: bool = False) -> None:
+        """Add factors and the n_new states up to state k to the smoother: to a new one when
+        fresh (the initialisation), else restarted from the state before them when it holds
+        RESET_EVERY states (or was not rebuilt: a resumed run's replay starts so)."""
+        if fresh or self._smoother is None or self._n_states >= RESET_EVERY:
+            self._smoother, self._n_states = gtsam.ISAM2(_isam_params()), 0
+            if not fresh:  # the last state before these (its estimate) with priors
                 j = k - n_new
-                est = old.calculateEstimate()
-                x, v, b = est.atPose3(_X(j)), est.atVector(_V(j)), est.atConstantBias(_B(j))
+                x, v, b = self.nav.pose(), self.nav.velocity(), self.bias
                 graph.add(gtsam.PriorFactorPose3(_X(j), x, _sigmas(RESET_SIGMA_RAD,
                                                                    RESET_SIGMA_M)))
                 graph.add(gtsam.PriorFactorVector(_V(j), v, gtsam.noiseModel.Isotropic.Sigma(
@@ -318,6 +336,84 @@ class ImuFrontend:
         self.nav = gtsam.NavState(s.calculateEstimatePose3(_X(k)),
                                   s.calculateEstimateVector(_V(k)))
         self.bias = s.calculateEstimateConstantBias(_B(k))
+
+    # -- checkpoint -------------------------------------------------------------------------------
+
+    def _light_state(self) -> dict:
+        """What _learn computes from, besides the smoother (no copies of the counters and the
+        prediction errors, which restore() takes as saved)."""
+        return {"R_G_Wo": self.R_G_Wo, "T_Wo_L": self.T_Wo_L, "bias": self.bias,
+                "nav": self.nav, "t_last": self.t_last, "k": self._k,
+                "n_states": self._n_states, "pending": list(self._pending)}
+
+    def _set_light(self, light: dict) -> None:
+        self.R_G_Wo, self.T_Wo_L, self.bias = light["R_G_Wo"], light["T_Wo_L"], light["bias"]
+        self.nav, self.t_last, self._k = light["nav"], light["t_last"], light["k"]
+        self._n_states, self._pending = light["n_states"], list(light["pending"])
+
+    @staticmethod
+    def _pack(light: dict, prefix: str) -> dict[str, np.ndarray]:
+        nav, bias = light["nav"], light["bias"]
+        pend = light["pending"]
+        return {
+            f"{prefix}R_G_Wo": np.zeros((0, 3)) if light["R_G_Wo"] is None else light["R_G_Wo"],
+            f"{prefix}T_Wo_L": np.asarray(light["T_Wo_L"]),
+            f"{prefix}bias": np.r_[bias.accelerometer(), bias.gyroscope()],
+            f"{prefix}nav_pose": np.zeros((0, 4)) if nav is None else nav.pose().matrix(),
+            f"{prefix}nav_velocity": np.zeros(0) if nav is None else nav.velocity(),
+            f"{prefix}scalars": np.array([light["t_last"], light["k"], light["n_states"]]),
+            f"{prefix}pending_t": np.array([p[0] for p in pend], dtype=np.float64),
+            f"{prefix}pending_T": np.array([p[1] for p in pend]).reshape(-1, 4, 4)}
+
+    @staticmethod
+    def _unpack(a: dict[str, np.ndarray], prefix: str) -> dict:
+        R, pose, vel = a[f"{prefix}R_G_Wo"], a[f"{prefix}nav_pose"], a[f"{prefix}nav_velocity"]
+        t_last, k, n_states = a[f"{prefix}scalars"]
+        bias = a[f"{prefix}bias"]
+        return {"R_G_Wo": None if R.size == 0 else np.array(R),
+                "T_Wo_L": np.array(a[f"{prefix}T_Wo_L"]),
+                "bias": gtsam.imuBias.ConstantBias(bias[:3], bias[3:]),
+                "nav": None if pose.size == 0 else gtsam.NavState(gtsam.Pose3(pose), vel),
+                "t_last": float(t_last), "k": int(k), "n_states": int(n_states),
+                "pending": [(float(t), np.array(T)) for t, T in
+                            zip(a[f"{prefix}pending_t"], a[f"{prefix}pending_T"])]}
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything to continue exactly (lidar_slam.run.checkpoint): the state now, counters
+        and prediction errors, and for the smoother the state before the call that made it and
+        the registered poses fed to it since (restore() replays them)."""
+        out = self._pack(self._light_state(), "now_")
+        if self._base is not None:
+            out.update(self._pack(self._base, "base_"))
+        j = self._journal
+        out["journal_t"] = np.array([e[0] for e in j], dtype=np.float64)
+        out["journal_T"] = np.array([e[1] for e in j]).reshape(-1, 4, 4)
+        out["journal_guess"] = np.array([np.full((4, 4), np.nan) if e[2] is None else e[2]
+                                         for e in j]).reshape(-1, 4, 4)
+        out["counters"] = np.array([self.n_imu, self.n_constant_velocity, self.n_gaps,
+                                    self.n_diverged, self.n_inits,
+                                    np.nan if self.first_imu_s is None else self.first_imu_s])
+        out["prediction_error"] = np.array(self.prediction_error).reshape(-1, 2)
+        return out
+
+    def restore(self, a: dict[str, np.ndarray]) -> None:
+        """Continue from state(): the smoother is rebuilt by replaying its calls."""
+        now = self._unpack(a, "now_")
+        self._smoother, self._base, self._journal = None, None, []
+        if "base_scalars" in a:
+            self._base = self._unpack(a, "base_")
+            self._set_light(self._base)
+            guesses = [None if np.isnan(G).any() else np.array(G) for G in a["journal_guess"]]
+            self._journal = [(float(t), np.array(T), g) for t, T, g in
+                             zip(a["journal_t"], a["journal_T"], guesses)]
+            for t, T, g in self._journal:
+                self._learn(t, T, g, "(replayed)")
+        self._set_light(now)
+        n_imu, n_cv, n_gaps, n_div, n_inits, first = a["counters"]
+        self.n_imu, self.n_constant_velocity, self.n_gaps = int(n_imu), int(n_cv), int(n_gaps)
+        self.n_diverged, self.n_inits = int(n_div), int(n_inits)
+        self.first_imu_s = None if np.isnan(first) else float(first)
+        self.prediction_error = [(float(m), float(d)) for m, d in a["prediction_error"]]
 
     # -- initialisation --------------------------------------------------------------------------
 
@@ -365,9 +461,8 @@ class ImuFrontend:
                                                               [BIAS_SIGMA_GYRO] * 3])))
         # The window solved as a batch first (Levenberg-Marquardt), then handed to the smoother.
         values = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
-        self._smoother = None
         try:
-            self._update(graph, values, k0 + len(t) - 1, len(t))
+            self._update(graph, values, k0 + len(t) - 1, len(t), fresh=True)
         except RuntimeError as exc:
             log.warning("IMU initialisation failed (%s); trying again", exc)
             self._restart()

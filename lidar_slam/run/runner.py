@@ -15,7 +15,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from lidar_slam.errors import EXIT_INTERRUPTED, InputError, LidarSlamError, RunFailed
+from lidar_slam.errors import EXIT_INTERRUPTED, LidarSlamError, RunFailed
 from lidar_slam.run.outdir import RUN_OUTPUTS, discard_run, prepare_out_dir, scan_range
 from lidar_slam.run.progress import progress as make_progress
 from lidar_slam.run.signals import StopSignals
@@ -210,9 +210,6 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
     resuming = _resuming(out, identity, overwrite, resume)
-    if resuming and inertial.imu is not None:
-        raise InputError(out, "cannot resume a run with an IMU: the IMU front-end's state is "
-                         "not in the checkpoint; rerun with --overwrite to start again")
     visualizer = open_viewer(viz, rrd)
     t0 = time.perf_counter()
     stop = StopSignals()
