@@ -1,6 +1,8 @@
 """The SLAM pipeline in flow order:
 reader -> deskew -> odometry -> keyframe? -> (loop worker: scan-context query -> ICP verify)
 -> back-end (pose graph, bounded-window updates; full solve at the end) -> map / metrics.
+With an IMU, deskew follows the integrated IMU and odometry starts from its prediction
+(lidar_slam.frontend.inertial).
 """
 
 from __future__ import annotations
