@@ -111,6 +111,13 @@ def test_a_rotated_and_offset_imu_gives_the_poses_of_an_imu_at_the_lidar(walks):
     assert np.abs(est_a[:, :3, 3] - est_b[:, :3, 3]).max() < 0.01
 
 
+def test_the_same_input_gives_the_same_poses_with_an_imu(walks):
+    seq, xyz_rpy = walks["rotated"]
+    first, *_ = run(seq, cfg_with(xyz_rpy))
+    second, *_ = run(seq, cfg_with(xyz_rpy))
+    np.testing.assert_array_equal(first, second)
+
+
 def test_without_an_imu_or_with_it_switched_off_the_poses_are_those_of_lidar_only(walks):
     seq, xyz_rpy = walks["rotated"]
     est_none, _, fe_none, _ = run(seq, cfg_with(xyz_rpy), imu=False)
