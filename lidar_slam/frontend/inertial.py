@@ -20,8 +20,10 @@ attitude, velocity and bias, as LIO-SAM's imuPreintegration: gtsam ISAM2 over th
 last scans (CombinedImuFactor between consecutive ones, the registered motion between them as
 BetweenFactorPose3), started afresh every RESET_EVERY states from the newest state with fixed
 priors (RESET_SIGMA_*), which bounds its cost. gtsam's IncrementalFixedLagSmoother, and
-LIO-SAM's reset from the marginal covariances, both stop on an "indeterminate linear system"
-with the config's BMI088 noise (the marginals of a 3-state chain already fail).
+LIO-SAM's reset from the marginal covariances, both stopped on an "indeterminate linear system"
+with the config's BMI088 noise (Cholesky; the marginals of a 3-state chain already fail). The
+pose handed on stays kiss-icp's registration; its pose at the stamp follows the IMU's motion
+plus the share of the registration's correction accrued by then (see _at_stamp).
 
 Initialisation: the first INIT_SECONDS (at least INIT_MIN_SCANS registered scans) run lidar-only
 (constant velocity). A first attitude w.r.t. gravity then follows from the lidar velocities at
