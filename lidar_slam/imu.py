@@ -78,8 +78,10 @@ class ImuStream:
         """(N, 6) angular rate and specific force linearly interpolated at times_s (held past
         the ends)."""
         times_s = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
-        return np.stack([np.interp(times_s, self.t, self._values[:, j]) for j in range(6)],
-                        axis=1)
+        # One search for all six columns (np.interp per column cost ~1 ms per scan).
+        i = np.clip(np.searchsorted(self.t, times_s, side="right") - 1, 0, len(self.t) - 2)
+        w = np.clip((times_s - self.t[i]) / (self.t[i + 1] - self.t[i]), 0.0, 1.0)[:, None]
+        return self._values[i] * (1.0 - w) + self._values[i + 1] * w
 
     def interval(self, t0_s: float, t1_s: float) -> Interval:
         """The steps between t0_s and t1_s (t1_s >= t0_s): the sample stamps inside, with the

@@ -1,6 +1,8 @@
 """The SLAM pipeline in flow order:
 reader -> deskew -> odometry -> keyframe? -> (loop worker: scan-context query -> ICP verify)
 -> back-end (pose graph, bounded-window updates; full solve at the end) -> map / metrics.
+With an IMU, deskew follows the integrated IMU and odometry starts from its prediction
+(lidar_slam.frontend.inertial).
 """
 
 from __future__ import annotations
@@ -72,10 +74,15 @@ class Pipeline:
     """Calls the stages in flow order for one scan at a time; finish() ends the run."""
 
     def __init__(self, cfg: SlamConfig, run_dir: str | Path | None = None, viz=None,
-                 resume: bool = False):
+                 resume: bool = False, imu=None):
         self.cfg = cfg
         self.odometry = Odometry(cfg)
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
+        self.inertial = None  # the IMU front-end (imu: ImuSamples on the scans' clock)
+        if imu is not None and cfg.imu.enabled:
+            from lidar_slam.frontend.inertial import ImuFrontend
+
+            self.inertial = ImuFrontend(imu, cfg.imu)
         self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
         # the run folder's store (lidar_slam.run.checkpoint cuts it back to it).
@@ -110,8 +117,13 @@ class Pipeline:
         if self.adaptive is None:
             self.start(adapt.auto_values(self.cfg, scan.points))
         r, t0 = self.result, time.perf_counter()
-        deskewed = self.deskew(scan, self.odometry.last_delta)
-        odom = self.odometry.step(deskewed)
+        if self.inertial is None:
+            deskewed, guess = self.deskew(scan, self.odometry.last_delta), None
+        else:
+            deskewed, guess = self.inertial.prepare(scan, self.deskew, self.odometry.last_delta)
+        odom = self.odometry.step(deskewed, guess)
+        if self.inertial is not None:
+            odom = self.inertial.update(deskewed, odom)
         if not odom.registered:
             n = self.odometry.last_n_points
             if n == 0:
@@ -272,8 +284,9 @@ def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = Non
     loop over Pipeline, for library use and tests, with no run folder rules, signals or outputs,
     and errors propagate. The run driver (what `lidar-slam run` and `batch` do: --out rules,
     resume, signals, the frames so far kept on an error, the outputs) is
-    lidar_slam.run.run_sequence. inertial: the IMU / GNSS (InertialInput) for the final solve."""
-    pipe = Pipeline(cfg, run_dir)
+    lidar_slam.run.run_sequence. inertial: the IMU / GNSS (io.inertial_input.InertialInput):
+    the IMU deskews and predicts in the front-end, both go into the final solve."""
+    pipe = Pipeline(cfg, run_dir, imu=None if inertial is None else inertial.imu)
     try:
         for scan in scans:
             pipe.process(scan)

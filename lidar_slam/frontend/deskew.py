@@ -12,6 +12,10 @@ voxel of the keyframe cloud (about 6k of the ~120k points of an HDL-64E sweep). 
 deskew of every point is cheap (~2 ms), but the selection after it is not: selecting on the raw
 scan in kiss-icp's C++ and deskewing the selection took the odometry from 64 to 41 ms/frame on
 sim 07 (tools/compare_deskew.py).
+
+With an IMU (lidar_slam.frontend.inertial) the motion within the sweep is not constant: it comes
+as a SweepMotion, the sensor's pose at knots through the sweep (the IMU sample times), and each
+point is moved along it instead (same reference instant, same points, still deskewed once).
 """
 
 from __future__ import annotations
@@ -58,6 +62,50 @@ def deskew(points: np.ndarray, point_times_s: np.ndarray, T_prev_curr: np.ndarra
     return out
 
 
+class SweepMotion:
+    """The sensor's motion through a sweep as poses T_ref_t (K, 4, 4) at knot times t (K,),
+    seconds relative to the reference instant, strictly increasing: a point captured at time t
+    is moved with the pose interpolated between the knots around it (rotation about the
+    segment's fixed axis, translation linearly), held constant past the end knots."""
+
+    def __init__(self, times_s: np.ndarray, T_ref_t: np.ndarray):
+        self.times_s = np.asarray(times_s, dtype=np.float64)
+        self.T_ref_t = np.asarray(T_ref_t, dtype=np.float64)
+        if len(self.times_s) < 2 or np.any(np.diff(self.times_s) <= 0):
+            raise ValueError("a sweep motion needs at least two knots in increasing time")
+        R = self.T_ref_t[:, :3, :3]
+        # Per segment: the rotation vector from its start knot to its end (in the start's frame)
+        self._rotvec = rotvec_from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:])
+
+    def _segment(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.clip(times_s, self.times_s[0], self.times_s[-1])
+        i = np.clip(np.searchsorted(self.times_s, t, side="right") - 1, 0, len(self.times_s) - 2)
+        s = (t - self.times_s[i]) / (self.times_s[i + 1] - self.times_s[i])
+        return i, s
+
+    def apply(self, points: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+        """Points (N,3) captured at times_s (relative to the reference instant), in the sensor
+        frame at the reference instant."""
+        i, s = self._segment(np.asarray(times_s, dtype=np.float64))
+        v = self._rotvec[i] * s[:, None]  # rotation within the segment, per point (Rodrigues)
+        theta = np.linalg.norm(v, axis=1)
+        safe = np.where(theta > 1e-12, theta, 1.0)
+        k = v / safe[:, None]
+        cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        p = (points * cos + np.cross(k, points) * sin
+             + k * (np.einsum("ij,ij->i", k, points)[:, None] * (1.0 - cos)))
+        T0, T1 = self.T_ref_t[i], self.T_ref_t[i + 1]
+        out = np.einsum("nij,nj->ni", T0[:, :3, :3], p)
+        out += T0[:, :3, 3] + s[:, None] * (T1[:, :3, 3] - T0[:, :3, 3])
+        return out
+
+    def T_ref_at(self, t_s: float) -> np.ndarray:
+        """The sensor's pose at t_s (relative to the reference instant) in the reference frame."""
+        i, s = self._segment(np.array([t_s], dtype=np.float64))
+        i, s = int(i[0]), float(s[0])
+        return interpolate(self.T_ref_t[i], self.T_ref_t[i + 1], s)
+
+
 @dataclass(frozen=True)
 class DeskewedScan:
     """A scan ready for registration.
@@ -66,7 +114,8 @@ class DeskewedScan:
     when the scan has per-point times, else its stamp); with times, only one point per voxel of
     `voxel_m` within the range crop, deskewed; without, every point as read (kiss-icp crops and
     downsamples them itself, exactly as stock). ref_s: the reference instant relative to the
-    stamp; period_s: the time since the previous scan; T_prev_curr: the motion deskewing used.
+    stamp; period_s: the time since the previous scan; T_prev_curr: the constant-velocity motion
+    deskewing used, unless `motion` (the IMU's motion through the sweep) is set: then that.
     """
 
     scan: Scan
@@ -79,6 +128,12 @@ class DeskewedScan:
     # into the scan and its voxel size.
     selected_idx: np.ndarray | None = None
     selected_voxel_m: float = 0.0
+    motion: SweepMotion | None = None
+
+    def _deskew(self, points: np.ndarray, times_rel_ref: np.ndarray) -> np.ndarray:
+        if self.motion is not None:
+            return self.motion.apply(points, times_rel_ref)
+        return deskew(points, times_rel_ref, self.T_prev_curr, self.period_s)
 
     @property
     def selected(self) -> bool:
@@ -89,6 +144,8 @@ class DeskewedScan:
         freshly estimated one: it spans the interval between the stamp and the sweep's middle)."""
         if self.ref_s == 0.0:
             return np.eye(4)
+        if self.motion is not None:
+            return self.motion.T_ref_at(-self.ref_s)
         return interpolate(np.eye(4), T_prev_curr, -self.ref_s / self.period_s)
 
     def with_motion(self, T_prev_curr: np.ndarray) -> DeskewedScan:
@@ -96,11 +153,11 @@ class DeskewedScan:
         to the same reference instant and with the same points."""
         scan = self.scan
         if self.ref_s == 0.0:  # not deskewed (no per-point times, or deskew off)
-            return dataclasses.replace(self, T_prev_curr=T_prev_curr)
+            return dataclasses.replace(self, T_prev_curr=T_prev_curr, motion=None)
         idx = slice(None) if self.selected_idx is None else self.selected_idx
         points = deskew(scan.points[idx], scan.point_times[idx] - self.ref_s, T_prev_curr,
                         self.period_s)
-        return dataclasses.replace(self, points=points, T_prev_curr=T_prev_curr)
+        return dataclasses.replace(self, points=points, T_prev_curr=T_prev_curr, motion=None)
 
     def cloud(self, voxel_m: float, min_range_m: float, max_range_m: float
               ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -115,7 +172,7 @@ class DeskewedScan:
         idx = self.select(scan.points, voxel_m, min_range_m, max_range_m)
         pts = scan.points[idx]
         if self.ref_s != 0.0:
-            pts = deskew(pts, scan.point_times[idx] - self.ref_s, self.T_prev_curr, self.period_s)
+            pts = self._deskew(pts, scan.point_times[idx] - self.ref_s)
         return pts, None if scan.intensity is None else scan.intensity[idx]
 
 
@@ -138,15 +195,29 @@ class Deskewer:
         self.last_stamp_s = state["last_stamp_s"]
         self.last_period_s = state["last_period_s"]
 
-    def __call__(self, scan: Scan, T_prev_curr: np.ndarray) -> DeskewedScan:
-        """Deskew the used points of scan to the middle of its sweep (when it has point times)."""
+    def will_deskew(self, scan: Scan) -> bool:
+        """Whether __call__ deskews scan (deskew on, per-point times, points)."""
+        return bool(self.cfg.deskew and scan.point_times is not None and len(scan.points))
+
+    @staticmethod
+    def reference_s(scan: Scan) -> float:
+        """The reference instant of a scan with per-point times, relative to its stamp: the
+        middle of its sweep."""
+        times = scan.point_times
+        return 0.5 * (float(times.min()) + float(times.max()))
+
+    def __call__(self, scan: Scan, T_prev_curr: np.ndarray,
+                 motion: SweepMotion | None = None) -> DeskewedScan:
+        """Deskew the used points of scan to the middle of its sweep (when it has point times),
+        along motion when given (the IMU's, relative to that instant), else at constant
+        velocity T_prev_curr."""
         if self.last_stamp_s is not None and scan.stamp_s > self.last_stamp_s:
             period_s = scan.stamp_s - self.last_stamp_s
         else:
             period_s = self.last_period_s
         self.last_stamp_s, self.last_period_s = scan.stamp_s, period_s
         times = scan.point_times
-        if not self.cfg.deskew or times is None or len(scan.points) == 0:
+        if not self.will_deskew(scan):
             return DeskewedScan(scan, scan.points, 0.0, period_s, T_prev_curr, self.select)
         # Deskew to the middle of the sweep: the correction, and with it the effect of a wrong
         # velocity guess, is half what deskewing to an end of the sweep gives; that feedback
@@ -154,11 +225,12 @@ class Deskewer:
         # selected before deskewing, and used as they are (one per voxel of the raw scan): a
         # second selection after deskewing would open holes where deskewing moved two points
         # into one voxel (sample_scans: odometry ATE 8 % worse).
-        ref_s = 0.5 * (float(times.min()) + float(times.max()))
+        ref_s = self.reference_s(scan)
         if self.cfg.deskew_all_points:
-            points = deskew(scan.points, times - ref_s, T_prev_curr, period_s)
-            return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select)
+            out = DeskewedScan(scan, scan.points, ref_s, period_s, T_prev_curr, self.select,
+                               motion=motion)
+            return dataclasses.replace(out, points=out._deskew(scan.points, times - ref_s))
         idx = self.select(scan.points, self.voxel_m, self.cfg.min_range_m, self.cfg.max_range_m)
-        points = deskew(scan.points[idx], times[idx] - ref_s, T_prev_curr, period_s)
-        return DeskewedScan(scan, points, ref_s, period_s, T_prev_curr, self.select, idx,
-                            self.voxel_m)
+        out = DeskewedScan(scan, scan.points[idx], ref_s, period_s, T_prev_curr, self.select, idx,
+                           self.voxel_m, motion)
+        return dataclasses.replace(out, points=out._deskew(scan.points[idx], times[idx] - ref_s))

@@ -146,13 +146,14 @@ class Odometry:
                                                 min_motion_th=o.min_motion_m,
                                                 max_range=self.max_range_m)
 
-    def register(self, points: np.ndarray, selected: bool = False, refine: bool = False
-                 ) -> np.ndarray | None:
+    def register(self, points: np.ndarray, selected: bool = False, refine: bool = False,
+                 initial_guess: np.ndarray | None = None) -> np.ndarray | None:
         """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
         (and no state change) when fewer than data.min_points are left after the range crop and
         the half-voxel selection (last_n_points says how many). selected: the points are already
         cropped and one per voxel of half the voxel size (see DeskewedScan). refine: refine the
-        pose against the last keyframes' clouds (when there are any)."""
+        pose against the last keyframes' clouds (when there are any). initial_guess: where ICP
+        starts (the IMU's prediction), else kiss-icp's constant-velocity one."""
         if selected:
             frame_down = _vec(points)
         else:
@@ -163,7 +164,8 @@ class Odometry:
             return None  # too few to register: no state change, the caller predicts
         source = kp._voxel_down_sample(frame_down, self.voxel_size_m * 1.5)
         sigma = self._threshold._compute_threshold()
-        initial_guess = self.last_pose @ self.last_delta
+        if initial_guess is None:
+            initial_guess = self.last_pose @ self.last_delta
         new_pose = self._registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
@@ -177,13 +179,16 @@ class Odometry:
         self.last_pose = new_pose
         return new_pose
 
-    def step(self, scan: DeskewedScan) -> OdometryResult:
-        """Register a deskewed scan and return its pose at the stamp."""
-        T_world_ref = self.register(scan.points, scan.selected, self.is_slow(scan.period_s))
+    def step(self, scan: DeskewedScan, initial_guess: np.ndarray | None = None
+             ) -> OdometryResult:
+        """Register a deskewed scan and return its pose at the stamp. initial_guess: the IMU's
+        prediction of the pose at the scan's reference instant (else constant velocity)."""
+        T_world_ref = self.register(scan.points, scan.selected, self.is_slow(scan.period_s),
+                                    initial_guess)
         if T_world_ref is None:
             # The prediction is of the sweep's middle, like every registration: move it to the
             # stamp with the last registered scan's offset.
-            T_world_ref = self.predict()
+            T_world_ref = self.predict(initial_guess)
             T_ref_stamp = interpolate(np.eye(4), self.last_delta,
                                       -self._last_ref_s / scan.period_s)
             return OdometryResult(T_world_ref @ T_ref_stamp, T_world_ref, T_ref_stamp, False)
@@ -205,8 +210,11 @@ class Odometry:
         limit = self.cfg.odometry.refine_below_mps
         return limit > 0 and float(np.linalg.norm(self.last_delta[:3, 3])) < limit * period_s
 
-    def predict(self) -> np.ndarray:
-        """Constant-velocity prediction of the next pose; advances the state without a scan."""
+    def predict(self, guess: np.ndarray | None = None) -> np.ndarray:
+        """Constant-velocity prediction of the next pose (or guess, the IMU's); advances the
+        state without a scan."""
+        if guess is not None:
+            self.last_delta = np.linalg.inv(self.last_pose) @ guess
         self.last_pose = self.last_pose @ self.last_delta
         return self.last_pose
 

@@ -4,7 +4,8 @@ RUN/checkpoint/ holds:
 - `run.json`: what the run is (input, start, scan count, the effective config); a resume with
   other input or another config is refused.
 - `state-<generation>.npz`: written every `checkpoint.every_keyframes` keyframes: the frames so
-  far, the odometry (poses, kiss-icp's local map points), front-end and keyframe-selector state,
+  far, the odometry (poses, kiss-icp's local map points), front-end and keyframe-selector state
+  (with an IMU: the IMU front-end's, whose smoother is rebuilt by replaying its inputs),
   the loop records and constraints applied to the graph, and how many keyframes and threshold
   deviations are valid.
 - `deviations.bin`: every model deviation fed to kiss-icp's adaptive threshold (append-only,
@@ -228,6 +229,8 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "backend_live": (pipe.backend.state() if pipe.backend is not None
                          else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
+        **({} if pipe.inertial is None
+           else {f"imu_{k}": v for k, v in pipe.inertial.state().items()}),
         "meta": np.array(json.dumps(meta)),
     }
     buf = io.BytesIO()
@@ -285,6 +288,13 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     with open(d / "deviations.bin", "r+b") as fh:
         fh.truncate(meta["deviations"] * 16 * 8)
     pipe.odometry.restore({k[4:]: v for k, v in a.items() if k.startswith("odo_")}, deviations)
+    imu = {k[4:]: v for k, v in a.items() if k.startswith("imu_")}
+    if (pipe.inertial is None) != (not imu):
+        raise InputError(state, f"the checkpoint was made {'without' if not imu else 'with'} "
+                         f"an IMU front-end and this run has {'one' if not imu else 'none'}; "
+                         f"{_RERUN}")
+    if imu:
+        pipe.inertial.restore(imu)
     r.store.truncate(meta["keyframes"])
     anchors = []  # the slow-scan refinement's target, as the run had it: the last non-empty
     for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first

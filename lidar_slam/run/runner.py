@@ -149,7 +149,8 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
 
 def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None):
     """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
-    against the scan stamps; the back-end's final solve uses them (Pipeline.finish)."""
+    against the scan stamps and reported in summary.json: the IMU deskews and predicts in the
+    front-end (Pipeline(imu=)), both go into the back-end's final solve (Pipeline.finish)."""
     from lidar_slam.io.inertial_input import load_inertial
 
     stamps = source.stamps if source.kind != "file" else None
@@ -214,7 +215,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     t0 = time.perf_counter()
     stop = StopSignals()
     with stop:  # from here on, a signal stops the run after the scan in hand
-        pipe = Pipeline(cfg, out, visualizer, resume=resuming)
+        pipe = Pipeline(cfg, out, visualizer, resume=resuming, imu=inertial.imu)
         pipe.frames_total = total
         done = 0
         if resuming:
@@ -241,6 +242,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                         "config_overlay": str(config) if config is not None else None,
                         "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
                         "input_notes": source.input_notes, **inertial.summary,
+                        **({} if pipe.inertial is None
+                           else {"imu_frontend": pipe.inertial.summary()}),
                         "start": start,
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}
