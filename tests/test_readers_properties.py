@@ -463,3 +463,22 @@ def _load(data: bytes) -> None:
 def _leaves(d):
     for v in d.values():
         yield from (_leaves(v) if isinstance(v, dict) else [v])
+
+
+@pytest.mark.parametrize("damage", [b"\x00", b"(\n"], ids=["null-byte", "open-bracket"])
+def test_an_npy_header_numpy_cannot_parse_is_one_error(damage):
+    """Found by the property test above in CI: NumPy parses the header with ast / tokenize, whose
+    SyntaxError / TokenError leaked as a traceback."""
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.zeros((3, 3), np.float32), allow_pickle=False)
+    raw = bytearray(buf.getvalue())
+    at = raw.index(b"'descr'")
+    raw[at:at + len(damage)] = damage
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "s.npy"
+        path.write_bytes(bytes(raw))
+        with pytest.raises(LidarSlamError) as err:
+            read_cloud(path)
+        _one_line_error(err.value, path)

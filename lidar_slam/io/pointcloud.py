@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError
 
 import numpy as np
 
@@ -385,7 +386,8 @@ def read_npy(path: Path, stamp_ns: int | None = None) -> CloudData:
     x, y, z (and a time / intensity field)."""
     try:  # memory-mapped: a header that claims more data than the file has is refused here
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except (ValueError, OSError, EOFError, SyntaxError, TokenError) as exc:
+        # NumPy parses the header with ast / tokenize: a damaged one raises their errors
         raise InputError(path, f"unreadable .npy ({str(exc).splitlines()[0][:120]})") from None
     if arr.dtype.names:
         arr = arr.reshape(-1)
