@@ -83,16 +83,20 @@ class ImuStream:
         w = np.clip((times_s - self.t[i]) / (self.t[i + 1] - self.t[i]), 0.0, 1.0)[:, None]
         return self._values[i] * (1.0 - w) + self._values[i + 1] * w
 
-    def interval(self, t0_s: float, t1_s: float) -> Interval:
-        """The steps between t0_s and t1_s (t1_s >= t0_s): the sample stamps inside, with the
-        interpolated measurement at both ends."""
+    def knots(self, t0_s: float, t1_s: float) -> np.ndarray:
+        """The step boundaries between t0_s and t1_s (t1_s >= t0_s): both ends and the sample
+        stamps inside."""
         if t1_s < t0_s:
             raise ValueError(f"interval ends before it starts: {t0_s} > {t1_s}")
         i0, i1 = np.searchsorted(self.t, [t0_s, t1_s], side="right")
         knots = np.r_[t0_s, self.t[i0:i1], t1_s]
         knots = knots[np.r_[True, np.diff(knots) > 0]]  # a sample exactly at t0_s
-        if len(knots) < 2:
-            knots = np.array([t0_s, t1_s])
+        return knots if len(knots) >= 2 else np.array([t0_s, t1_s])
+
+    def interval(self, t0_s: float, t1_s: float) -> Interval:
+        """The steps between t0_s and t1_s (t1_s >= t0_s): the sample stamps inside, with the
+        interpolated measurement at both ends."""
+        knots = self.knots(t0_s, t1_s)
         values = self.at(knots)
         mean = 0.5 * (values[:-1] + values[1:])
         covered = bool(self.t[0] <= t0_s and t1_s <= self.t[-1])
@@ -109,16 +113,6 @@ class ImuStream:
             if dt > 0:
                 pim.integrateMeasurement(a, w, float(dt))
         return pim
-
-    def gravity_rotation(self, t0_s: float, t1_s: float) -> np.ndarray:
-        """R_world_imu (3x3) that turns the mean specific force over [t0_s, t1_s] to +z (roll
-        and pitch from gravity, the smallest such rotation): right when the IMU is at rest or
-        moves without net acceleration over the interval."""
-        iv = self.interval(t0_s, t1_s)
-        mean = (iv.accel_mps2 * iv.dt_s[:, None]).sum(axis=0) / max(iv.dt_s.sum(), 1e-12)
-        if not iv.dt_s.sum() > 0:
-            mean = self.at([t0_s])[0, 3:]
-        return gravity_rotation(mean)
 
 
 def gravity_rotation(specific_force: np.ndarray) -> np.ndarray:

@@ -268,8 +268,6 @@ class Pipeline:
         r.T_gravity_map = T_gravity_map
         if out.enu is not None:
             r.geo = GeoReference(out.enu, T_S_map)
-            r.inertial_summary.setdefault("gnss", {})["T_enu_map"] = [
-                round(float(v), 9) for v in T_S_map[:3].ravel()]
 
     def close(self) -> None:
         """Stop the loop worker and release the keyframe store."""

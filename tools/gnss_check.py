@@ -3,7 +3,7 @@
     python tools/gnss_check.py RUN SIM [--json OUT.json]
         [--las MAP.las --kitti-gt ../shared/data/kitti_gt --sequence 07 [--start N] [--seed S]]
 
-RUN: a `lidar-slam run` folder of a simulated sequence with gnss.csv (summary.json's gnss entry
+RUN: a `lidar-slam run` folder of a simulated sequence with gnss.csv (summary.json's geo section
 has the datum and T_enu_map the back-end found; gnss_fixes.csv says what it did with each fix).
 SIM: the `lidar-slam simulate --gnss` folder (poses.txt, calib.txt, T_world_seq.txt, whose world
 is ENU at the datum of gnss_truth.csv). Prints the absolute position error of every frame (the
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.geo import LocalEnu
+from lidar_slam.geo import GeoReference, LocalEnu
 from lidar_slam.io.trajectory import camera_to_lidar_poses, read_kitti_calib_tr, read_kitti_poses
 
 
@@ -57,18 +57,16 @@ def true_lidar_enu(sim: Path) -> np.ndarray:
 def run_enu(run: Path, datum: LocalEnu) -> np.ndarray:
     """(n, 3) the run's lidar positions (poses_kitti.txt) placed by its geo-reference, in the
     ENU frame of `datum`."""
-    gnss = json.loads((run / "summary.json").read_text()).get("gnss") or {}
-    if "T_enu_map" not in gnss:
-        why = gnss.get("reason", "no GNSS")
+    summary = json.loads((run / "summary.json").read_text())
+    if "geo" not in summary:
+        why = (summary.get("gnss") or {}).get("reason", "no GNSS")
         raise SystemExit(f"{run}: no geo-reference in summary.json ({why})")
-    T = np.eye(4)
-    T[:3] = np.asarray(gnss["T_enu_map"], dtype=float).reshape(3, 4)
     if (run / "poses_wgs84.csv").is_file():
         llh = np.loadtxt(run / "poses_wgs84.csv", delimiter=",", skiprows=1, ndmin=2)[:, 2:5]
-        return datum.from_wgs84(llh)
-    p = read_kitti_poses(run / "poses_kitti.txt")[:, :3, 3]
-    enu = p @ T[:3, :3].T + T[:3, 3]
-    return datum.from_wgs84(LocalEnu(*gnss["datum"]).to_wgs84(enu))
+    else:
+        geo = GeoReference.from_dict(summary["geo"])
+        llh = geo.map_to_wgs84(read_kitti_poses(run / "poses_kitti.txt")[:, :3, 3])
+    return datum.from_wgs84(llh)
 
 
 def jumps(run: Path, sim: Path) -> list[dict]:

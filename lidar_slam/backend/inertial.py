@@ -271,7 +271,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         result.fixes = _reports(fixes, tied, used, residual, d2, unused, alignment)
         summary["gnss"] = {**summary.get("gnss", {}), **_counts(result.fixes)}
         if tied is not None:
-            summary["gnss"].update(geo_referenced=True, datum=list(enu.datum))
+            summary["gnss"]["geo_referenced"] = True  # where: summary.json geo (run.outputs)
     result.seconds = time.perf_counter() - t_start
     summary["inertial_solve"] = {"seconds": round(result.seconds, 3),
                                  "error": [round(sol.initial_error, 6),

@@ -286,8 +286,7 @@ class ImuFrontend:
         s = self.stream
         if t0_s < s.start_s - self.max_step_s or t1_s > s.end_s + self.max_step_s:
             return False  # (within a step past the ends, the end sample is held)
-        iv = s.interval(t0_s, t1_s)
-        return len(iv.dt_s) == 0 or float(iv.dt_s.max()) <= self.max_step_s
+        return float(np.diff(s.knots(t0_s, t1_s)).max()) <= self.max_step_s
 
     def _imu_motion(self, T_Wo_La: np.ndarray, T_Wo_Lb: np.ndarray) -> gtsam.Pose3:
         """The IMU's motion between two registered lidar poses."""
