@@ -62,8 +62,12 @@ class OdometryConfig(_Section):
     max_num_threads: NonNegativeInt = 0
     # Slow scans are refined after kiss-icp: a scan whose last motion is under refine_below_mps
     # (m/s) is registered again, from kiss-icp's pose, by point-to-plane ICP against the clouds
-    # of the last refine_keyframes keyframes (one scan point per refine_voxel_m, default
-    # kiss-icp's source voxel 1.5 x voxel_size_m; matches up to refine_max_correspondence_m).
+    # of the last refine_keyframes keyframes (matches up to refine_max_correspondence_m). Its
+    # scan points: those kiss-icp adds to its map (one per half voxel), evenly thinned to at
+    # most refine_max_points; or, with refine_voxel_m set, one centroid per voxel of that size.
+    # The centroids of kiss-icp's 1.5 x voxel_size_m source voxel (the default until 2026-12-03)
+    # made hand-held indoor walks 1.3-2 % too long (~200 points per OS1-64 scan, corners
+    # averaged off the walls); 2,000 points of the half-voxel selection, 0.3-0.6 %.
     # kiss-icp's point-to-point match against its own recent points is pulled towards standing
     # still by the rings the beams draw on the ground, which a plane match slides along (sim
     # 07, braking from 4 m/s: 3.4 deg and 2 m lost in 25 scans). A refinement that moves the
@@ -73,6 +77,7 @@ class OdometryConfig(_Section):
     refine_below_mps: NonNegative = 5.0
     refine_keyframes: Count = 4
     refine_voxel_m: Positive | None = None
+    refine_max_points: Count = 2000
     refine_max_correspondence_m: Positive = 1.0
     refine_max_correction_m: Positive = 0.5
     refine_max_correction_deg: Positive = 2.0
@@ -173,6 +178,14 @@ class BackendConfig(_Section):
     # The final solve also starts from a global initialisation (gtsam InitializePose3) and keeps
     # it when it ends at a lower error than the one started at the live estimate.
     global_init: bool = True
+    # The odometry edges in the final solve with the IMU (backend.inertial), 1-sigma per
+    # keyframe, Huber-robust (huber_k): the pose graph's 5 cm above let the IMU's velocity bend a
+    # hand-held walk (300-scan walks: keyframe ATE 0.061 -> 0.078 m; 0.048 with 1 cm), and a
+    # scan registered wrongly in a shake is an outlier against the IMU. Rotation 0.1 deg: 0.2
+    # or 0.5 leave the gyro bias too free on a drive with a good odometry (synthetic drive in
+    # tests/test_backend_inertial.py: ATE 0.07 -> 0.10 m at 0.2), sim 07 the same either way.
+    inertial_odom_rot_sigma_deg: Positive = 0.1
+    inertial_odom_trans_sigma_m: Positive = 0.01
 
 
 class LoopConfig(_Section):

@@ -85,6 +85,18 @@ def sim_map(tmp_path_factory) -> SimMap:
     return SimMap(root / "seq", root / "run", summary, truth)
 
 
+@pytest.fixture(scope="session")
+def handheld_walk(tmp_path_factory) -> Path:
+    """20 s of `simulate --motion handheld --world indoor --seed 0 --imu` (200 OS1-64 scans)."""
+    seq = tmp_path_factory.mktemp("handheld") / "seq"
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "simulate", "--motion",
+                           "handheld", "--world", "indoor", "--seed", "0", "--duration-s", "20",
+                           "--imu", "--out", str(seq)], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return seq
+
+
 def require_ray() -> None:
     """Skip a test that needs Ray (the cluster extra) where it is not installed, unless
     LIDAR_SLAM_REQUIRE_RAY=1 (set by .ci/run, whose install includes the extra): then fail."""

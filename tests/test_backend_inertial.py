@@ -257,3 +257,4 @@ def test_the_imu_extrinsic_and_gravity_alignment_need_no_scipy_spatial(rpy):
             "gravity_rotation([0.1, 0.2, 9.8]); print('scipy.spatial' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+

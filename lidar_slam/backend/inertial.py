@@ -17,6 +17,7 @@ kept stop changing: a multipath jump is left out, not followed.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ import numpy as np
 
 from lidar_slam.backend import gnss as gnss_align
 from lidar_slam.backend import inertial_graph
-from lidar_slam.backend.factors import BetweenFactor
+from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.geo import LocalEnu
 from lidar_slam.geometry import inverse, make_pose
@@ -179,6 +180,15 @@ def _edges_between_imus(edges: list[BetweenFactor], Cn: dict[int, np.ndarray]
     return out
 
 
+def _inertial_odometry(cfg: SlamConfig, edges: list[BetweenFactor]) -> list[BetweenFactor]:
+    """The odometry edges with the information and kernel of a solve with the IMU (config
+    backend.inertial_odom_*, huber_k); loops as they are."""
+    b = cfg.backend
+    info = sigmas_to_information(b.inertial_odom_rot_sigma_deg, b.inertial_odom_trans_sigma_m)
+    return [e if e.is_loop else dataclasses.replace(e, information=info, robust_k=b.huber_k)
+            for e in edges]
+
+
 def _prior_covariance(R_S_node: np.ndarray, rot_sigma: np.ndarray, trans_sigma: float
                       ) -> np.ndarray:
     """6x6 covariance (node frame, rotation first) of rotation sigmas given about the S axes
@@ -232,6 +242,8 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     velocities = {k: T_S_world[:3, :3] @ v for k, v in v_world.items()}
     prior_mean = poses[keys[0]]
     prior_cov = _prior_covariance(prior_mean[:3, :3], rot_sigma, trans_sigma)
+    if links:
+        edges = _inertial_odometry(cfg, edges)
     imu_edges = _edges_between_imus(edges, Cn)
     Cn_inv = {k: inverse(T) for k, T in Cn.items()}
 

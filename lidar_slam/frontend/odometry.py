@@ -127,8 +127,11 @@ class Odometry:
             self._target = PlaneTarget(points,
                                        self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
                                        o.refine_max_correspondence_m)
-        source = voxel_centroids(np.asarray(frame_down),
-                                 o.refine_voxel_m or 1.5 * self.voxel_size_m)
+        if o.refine_voxel_m is not None:
+            source = voxel_centroids(np.asarray(frame_down), o.refine_voxel_m)
+        else:  # every k-th: kiss-icp's order is its hash map's, spatially scattered
+            source = np.asarray(frame_down)
+            source = source[::max(1, -(-len(source) // o.refine_max_points))]
         if len(source) < 3 or len(self._target) < 3:
             return T_world_points
         T = self._target.align(source, T_world_points, o.refine_max_correspondence_m)
