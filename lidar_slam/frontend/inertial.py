@@ -84,6 +84,10 @@ def _sigmas(first: float, second: float):
     return gtsam.noiseModel.Diagonal.Sigmas(np.r_[[first] * 3, [second] * 3])
 
 
+# gtsam's noise models are immutable: made once, not per scan.
+_BETWEEN_NOISE = _sigmas(BETWEEN_SIGMA_RAD, BETWEEN_SIGMA_M)
+
+
 def _isam_params() -> gtsam.ISAM2Params:
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(0.1)
@@ -125,6 +129,7 @@ class ImuFrontend:
         self._n_states = 0  # states in the smoother
         self._k = 0  # key of the newest state
         self._guess: np.ndarray | None = None  # IMU prediction of the scan in hand
+        self._to_t_ref = None  # (t_last, t_ref, bias, its preintegration): _propagate's
         self.n_imu = 0  # scans deskewed / predicted by the IMU
         self.n_constant_velocity = 0  # scans on constant velocity (initialising, fallbacks)
         self.n_gaps = 0  # fallbacks: the IMU does not cover the sweep
@@ -153,8 +158,9 @@ class ImuFrontend:
             return deskewer(scan, T_prev_curr), None
         deskewing = deskewer.will_deskew(scan)
         t_ref = scan.stamp_s + (deskewer.reference_s(scan) if deskewing else 0.0)
-        t_end = scan.stamp_s + float(scan.point_times.max()) if deskewing else t_ref
-        t_start = scan.stamp_s + float(scan.point_times.min()) if deskewing else t_ref
+        first_s, last_s = deskewer.sweep_s(scan) if deskewing else (0.0, 0.0)
+        t_end = scan.stamp_s + last_s if deskewing else t_ref
+        t_start = scan.stamp_s + first_s if deskewing else t_ref
         if t_start < self.t_last or not self._covers(self.t_last, max(t_ref, t_end)):
             self.n_gaps += 1
             self.n_constant_velocity += 1
@@ -162,13 +168,14 @@ class ImuFrontend:
                         "IMU initialised again", scan.source, t_start, t_end)
             self._restart()
             return deskewer(scan, T_prev_curr), None
-        times, T_G_L = self._propagate(t_ref, max(t_ref, t_end))
+        times, T_G_L, T_G_L_last = self._propagate(t_ref, max(t_ref, t_end),
+                                                    min(scan.stamp_s, t_start))
         i_ref = int(np.searchsorted(times, t_ref))
         T_ref_G = inverse(T_G_L[i_ref])
         motion = None
         if deskewing and len(times) >= 2:
             motion = SweepMotion(times - t_ref, T_ref_G @ T_G_L)
-        self._guess = self.T_Wo_L @ inverse(T_G_L[0]) @ T_G_L[i_ref]
+        self._guess = self.T_Wo_L @ inverse(T_G_L_last) @ T_G_L[i_ref]
         self.n_imu += 1
         return deskewer(scan, T_prev_curr, motion), self._guess
 
@@ -215,7 +222,7 @@ class ImuFrontend:
             self._pending.append((t_ref, T))
             return
         k = self._k + 1
-        pim = self.stream.preintegrate(self.t_last, t_ref, self.params, self.bias)
+        pim = self._preintegrated(t_ref)
         pred = pim.predict(self.nav, self.bias)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.BetweenFactorPose3(_X(k - 1), _X(k), self._imu_motion(self.T_Wo_L, T),
@@ -294,26 +301,52 @@ class ImuFrontend:
 
     @staticmethod
     def _between_noise():
-        return gtsam.noiseModel.Diagonal.Sigmas(np.r_[[BETWEEN_SIGMA_RAD] * 3,
-                                                      [BETWEEN_SIGMA_M] * 3])
+        return _BETWEEN_NOISE
 
-    def _propagate(self, t_ref: float, t_end: float) -> tuple[np.ndarray, np.ndarray]:
-        """Knot times (absolute, increasing; t_ref among them) from t_last to t_end, and the
-        predicted T_G_lidar (K, 4, 4) at each."""
-        pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
-        times, poses = [self.t_last], [self.nav.pose().matrix()]
-        for a, b in ((self.t_last, t_ref), (t_ref, t_end)):
+    def _propagate(self, t_ref: float, t_end: float, t_from: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Knot times (absolute, increasing; t_ref among them) from t_last to t_end, from the
+        last but one at or before t_from on (what the sweep motion is asked about: the points'
+        times and the stamp; at least two knots), the predicted T_G_lidar (K, 4, 4) at each, and
+        T_G_lidar at t_last. Keeps the preintegration from t_last to t_ref for _learn."""
+        nav, bias = self.nav, self.bias
+        times, steps = [self.t_last], []
+        for to_ref, (a, b) in ((True, (self.t_last, t_ref)), (False, (t_ref, t_end))):
             if b <= a:
                 continue
             iv = self.stream.interval(a, b)
+            dts = iv.dt_s.tolist()
             t = a
-            for dt, w, f in zip(iv.dt_s, iv.gyro_radps, iv.accel_mps2):
-                pim.integrateMeasurement(f, w, float(dt))
-                t += float(dt)
+            for dt in dts:
+                t += dt
                 times.append(t)
-                poses.append(pim.predict(self.nav, self.bias).pose().matrix())
             times[-1] = b  # exactly, not the sum of the steps
-        return np.asarray(times), np.asarray(poses) @ self.T_imu_lidar
+            steps += zip([to_ref] * len(dts), dts, iv.gyro_radps, iv.accel_mps2)
+        first = max(0, min(int(np.searchsorted(times, t_from, side="right")) - 2,
+                           len(times) - 2))
+        # gtsam's prediction (and its 4x4) only at the knots asked about: the others only
+        # integrate. The same steps to t_ref into a second one: _learn's IMU factor.
+        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        to_t_ref = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        T_G_I_last = nav.pose().matrix()
+        poses = [T_G_I_last] if first == 0 else []
+        for k, (to_ref, dt, w, f) in enumerate(steps, start=1):
+            pim.integrateMeasurement(f, w, dt)
+            if to_ref:
+                to_t_ref.integrateMeasurement(f, w, dt)
+            if k >= first:
+                poses.append(pim.predict(nav, bias).pose().matrix())
+        self._to_t_ref = (self.t_last, t_ref, bias, to_t_ref)
+        return (np.asarray(times[first:]), np.asarray(poses) @ self.T_imu_lidar,
+                T_G_I_last @ self.T_imu_lidar)
+
+    def _preintegrated(self, t_ref: float) -> gtsam.PreintegratedCombinedMeasurements:
+        """The IMU from t_last to t_ref about the current bias: kept by _propagate for the scan
+        in hand (the same steps), else integrated (a replay, lidar_slam.run.checkpoint)."""
+        kept, self._to_t_ref = self._to_t_ref, None
+        if kept is not None and kept[:2] == (self.t_last, t_ref) and kept[2] is self.bias:
+            return kept[3]
+        return self.stream.preintegrate(self.t_last, t_ref, self.params, self.bias)
 
     def _update(self, graph, values, k: int, n_new: int = 1, fresh: bool = False) -> None:
         """Add factors and the n_new states up to state k to the smoother: to a new one when
