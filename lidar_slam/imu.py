@@ -109,9 +109,9 @@ class ImuStream:
         pim = gtsam.PreintegratedCombinedMeasurements(
             params, gtsam.imuBias.ConstantBias() if bias is None else bias)
         iv = self.interval(t0_s, t1_s)
-        for dt, w, a in zip(iv.dt_s, iv.gyro_radps, iv.accel_mps2):
+        for dt, w, a in zip(iv.dt_s.tolist(), iv.gyro_radps, iv.accel_mps2):
             if dt > 0:
-                pim.integrateMeasurement(a, w, float(dt))
+                pim.integrateMeasurement(a, w, dt)
         return pim
 
 
