@@ -53,7 +53,7 @@ import numpy as np
 from lidar_slam.config import ImuConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer, SweepMotion
 from lidar_slam.frontend.odometry import OdometryResult
-from lidar_slam.geometry import interpolate, inverse, rotation_angle_deg
+from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import GRAVITY_MPS2, ImuStream, combined_params, gravity_rotation
 from lidar_slam.io.inertial import GAP_PERIODS, ImuSamples
 from lidar_slam.types import Scan
@@ -86,6 +86,19 @@ def _sigmas(first: float, second: float):
 
 # gtsam's noise models are immutable: made once, not per scan.
 _BETWEEN_NOISE = _sigmas(BETWEEN_SIGMA_RAD, BETWEEN_SIGMA_M)
+
+
+def _angle_deg(T: np.ndarray) -> float:
+    """The rotation angle of T (deg) by gtsam's log: per scan, ~10x faster than
+    geometry.rotation_angle_deg (its eigenvector route), the same to 1e-14 deg."""
+    return float(np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(T[:3, :3])))))
+
+
+def _towards(T: np.ndarray, f: float) -> np.ndarray:
+    """geometry.interpolate(I, T, f) by gtsam's exp and log: per scan, ~10x faster, the same
+    to 2e-16."""
+    R = gtsam.Rot3.Expmap(f * gtsam.Rot3.Logmap(gtsam.Rot3(T[:3, :3]))).matrix()
+    return make_pose(R, f * T[:3, 3])
 
 
 def _isam_params() -> gtsam.ISAM2Params:
@@ -210,14 +223,12 @@ class ImuFrontend:
             self._initialise()
             return
         d = inverse(guess) @ T
-        self.prediction_error.append((float(np.linalg.norm(d[:3, 3])),
-                                      float(rotation_angle_deg(d))))
+        self.prediction_error.append((float(np.linalg.norm(d[:3, 3])), _angle_deg(d)))
         if (self.prediction_error[-1][0] > MAX_DISAGREEMENT_M
                 or self.prediction_error[-1][1] > MAX_DISAGREEMENT_DEG):
             self.n_diverged += 1
             log.warning("%s: IMU prediction %.2f m / %.1f deg off the registration: IMU "
-                        "initialised again", source, np.linalg.norm(d[:3, 3]),
-                        rotation_angle_deg(d))
+                        "initialised again", source, *self.prediction_error[-1])
             self._restart()
             self._pending.append((t_ref, T))
             return
@@ -256,7 +267,7 @@ class ImuFrontend:
         f = (t_stamp - self.t_last) / (t_ref - self.t_last) if t_ref > self.t_last else 1.0
         correction = inverse(guess) @ odom.T_world_ref
         T_world_stamp = (guess @ deskewed.motion.T_ref_at(-deskewed.ref_s)
-                         @ interpolate(np.eye(4), correction, f))
+                         @ _towards(correction, f))
         T_ref_stamp = inverse(odom.T_world_ref) @ T_world_stamp
         return dataclasses.replace(odom, T_world_scan=T_world_stamp, T_ref_stamp=T_ref_stamp)
 
