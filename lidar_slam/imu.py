@@ -89,8 +89,8 @@ class ImuStream:
         if t1_s < t0_s:
             raise ValueError(f"interval ends before it starts: {t0_s} > {t1_s}")
         i0, i1 = np.searchsorted(self.t, [t0_s, t1_s], side="right")
-        knots = np.r_[t0_s, self.t[i0:i1], t1_s]
-        knots = knots[np.r_[True, np.diff(knots) > 0]]  # a sample exactly at t0_s
+        knots = np.concatenate(([t0_s], self.t[i0:i1], [t1_s]))  # (np.r_: 3x the time)
+        knots = knots[np.concatenate(([True], np.diff(knots) > 0))]  # a sample exactly at t0_s
         return knots if len(knots) >= 2 else np.array([t0_s, t1_s])
 
     def interval(self, t0_s: float, t1_s: float) -> Interval:
@@ -109,9 +109,9 @@ class ImuStream:
         pim = gtsam.PreintegratedCombinedMeasurements(
             params, gtsam.imuBias.ConstantBias() if bias is None else bias)
         iv = self.interval(t0_s, t1_s)
-        for dt, w, a in zip(iv.dt_s, iv.gyro_radps, iv.accel_mps2):
+        for dt, w, a in zip(iv.dt_s.tolist(), iv.gyro_radps, iv.accel_mps2):
             if dt > 0:
-                pim.integrateMeasurement(a, w, float(dt))
+                pim.integrateMeasurement(a, w, dt)
         return pim
 
 

@@ -187,3 +187,52 @@ def test_a_run_with_an_imu_resumed_from_its_checkpoint_ends_as_the_uninterrupted
         resumed.close()
     assert resumed.inertial.n_diverged == 0 and resumed.inertial.n_imu > N_SCANS - 10
     np.testing.assert_allclose(poses, uninterrupted, atol=1e-6)
+
+
+def test_a_sweep_motion_moves_each_point_with_the_pose_interpolated_between_its_knots():
+    """Knots with a rate that changes from segment to segment (and one without rotation): each
+    point as geometry.interpolate between the knots around it would move it, held at the ends;
+    T_ref_at is that interpolation itself."""
+    rng = np.random.default_rng(3)
+    knots = np.cumsum(rng.uniform(0.002, 0.008, 25)) - 0.06
+    poses = [make_pose(Rotation.from_rotvec(rng.normal(0.0, 0.3, 3)).as_matrix(),
+                       rng.normal(0.0, 1.0, 3)) for _ in knots]
+    poses[5] = poses[4].copy()  # a segment without motion
+    motion = SweepMotion(knots, np.array(poses))
+    points = rng.uniform(-40, 40, (2000, 3))
+    times = rng.uniform(knots[0] - 0.01, knots[-1] + 0.01, 2000)
+    times[:25] = knots  # on the knots themselves
+    expected = np.empty_like(points)
+    for n, (p, t) in enumerate(zip(points, times)):
+        i = int(np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2))
+        s = (np.clip(t, knots[0], knots[-1]) - knots[i]) / (knots[i + 1] - knots[i])
+        T = interpolate(poses[i], poses[i + 1], s)
+        expected[n] = T[:3, :3] @ p + T[:3, 3]
+    np.testing.assert_allclose(motion.apply(points, times), expected, rtol=0, atol=1e-12)
+    for t in (knots[0] - 1.0, knots[3], 0.5 * (knots[7] + knots[8]), knots[-1] + 1.0):
+        i = int(np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2))
+        s = (np.clip(t, knots[0], knots[-1]) - knots[i]) / (knots[i + 1] - knots[i])
+        np.testing.assert_allclose(motion.T_ref_at(t), interpolate(poses[i], poses[i + 1], s),
+                                   rtol=0, atol=1e-15)
+
+
+def test_each_imu_predicted_scan_integrates_the_imu_once(walks, monkeypatch):
+    """The smoother's IMU factor of a scan is the preintegration its sweep's prediction already
+    ran (the same steps from the last state to the scan's reference instant): the stream is not
+    integrated again per scan, only to initialise."""
+    from lidar_slam.imu import ImuStream
+
+    calls = []
+    preintegrate = ImuStream.preintegrate
+
+    def counted(self, *args, **kwargs):
+        calls.append(args[:2])
+        return preintegrate(self, *args, **kwargs)
+
+    monkeypatch.setattr(ImuStream, "preintegrate", counted)
+    seq, xyz_rpy = walks["rotated"]
+    _, _, fe, _ = run(seq, cfg_with(xyz_rpy))
+    assert fe.n_imu >= N_SCANS - 10 and fe.n_diverged == 0
+    print(f"{len(calls)} preintegrations, {fe.n_imu} IMU scans, {fe.n_inits} initialisations")
+    # only _initialise's (one per scan of its window after the first) and _gravity's
+    assert len(calls) < fe.n_imu // 2

@@ -20,6 +20,7 @@ point is moved along it instead (same reference instant, same points, still desk
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ import numpy as np
 
 from lidar_slam.config import DataConfig
 from lidar_slam.frontend.crop import range_mask
-from lidar_slam.geometry import interpolate, rotvec_from_matrix
+from lidar_slam.geometry import interpolate, make_pose, matrix_from_rotvec, rotvec_from_matrix
 from lidar_slam.types import Scan
 
 # (points (N,3), voxel_m, min_range_m, max_range_m) -> indices of one point per voxel in range
@@ -76,34 +77,62 @@ class SweepMotion:
         R = self.T_ref_t[:, :3, :3]
         # Per segment: the rotation vector from its start knot to its end (in the start's frame)
         self._rotvec = rotvec_from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:])
-
-    def _segment(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t = np.clip(times_s, self.times_s[0], self.times_s[-1])
-        i = np.clip(np.searchsorted(self.times_s, t, side="right") - 1, 0, len(self.times_s) - 2)
-        s = (t - self.times_s[i]) / (self.times_s[i + 1] - self.times_s[i])
-        return i, s
+        # Per segment, a row: the 3x11 matrix M with R0 Exp(a k) p + t0 + s dt = M [p, sin(a) p,
+        # (1 - cos(a)) p, 1, s] (Rodrigues about its axis k: R0 + sin(a) R0 K + (1 - cos(a))
+        # R0 K^2, K = [k]x; t0 the start knot's translation, dt the segment's), then its angle,
+        # start time and duration: apply() gathers one row per point (np.take, the fastest
+        # gather) and works on its columns.
+        n = len(self._rotvec)
+        theta = np.linalg.norm(self._rotvec, axis=1)
+        k = self._rotvec / np.where(theta > 1e-12, theta, 1.0)[:, None]
+        K = np.zeros((n, 9))
+        K[:, [7, 2, 3]] = k  # [k]x, row-major
+        K[:, [5, 6, 1]] = -k
+        K = K.reshape(n, 3, 3)
+        R0K = R[:-1] @ K
+        t0 = self.T_ref_t[:-1, :3, 3]
+        M = np.concatenate((R[:-1], R0K, R0K @ K, t0[:, :, None],
+                            (self.T_ref_t[1:, :3, 3] - t0)[:, :, None]), axis=2)
+        self._table = np.concatenate((M.reshape(n, 33), theta[:, None], self.times_s[:-1, None],
+                                      np.diff(self.times_s)[:, None]), axis=1)
+        self._knots = self.times_s.tolist()  # T_ref_at's lookup, in Python floats
+        self._last_at: tuple[float, np.ndarray] | None = None  # T_ref_at's last answer
 
     def apply(self, points: np.ndarray, times_s: np.ndarray) -> np.ndarray:
         """Points (N,3) captured at times_s (relative to the reference instant), in the sensor
         frame at the reference instant."""
-        i, s = self._segment(np.asarray(times_s, dtype=np.float64))
-        v = self._rotvec[i] * s[:, None]  # rotation within the segment, per point (Rodrigues)
-        theta = np.linalg.norm(v, axis=1)
-        safe = np.where(theta > 1e-12, theta, 1.0)
-        k = v / safe[:, None]
-        cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
-        p = (points * cos + np.cross(k, points) * sin
-             + k * (np.einsum("ij,ij->i", k, points)[:, None] * (1.0 - cos)))
-        T0, T1 = self.T_ref_t[i], self.T_ref_t[i + 1]
-        out = np.einsum("nij,nj->ni", T0[:, :3, :3], p)
-        out += T0[:, :3, 3] + s[:, None] * (T1[:, :3, 3] - T0[:, :3, 3])
-        return out
+        # The segment around each time (times clipped to the knots), its row of the table, the
+        # fraction s of it, then M u per point (~1.8x faster than per-point Rodrigues on (N,3)
+        # arrays and per-point 4x4 poses, on 07-ig's 7.5k points; the same numbers to 1e-13 m).
+        t = np.clip(np.asarray(times_s, dtype=np.float64), self.times_s[0], self.times_s[-1])
+        i = np.searchsorted(self.times_s, t, side="right") - 1
+        np.clip(i, 0, len(self.times_s) - 2, out=i)
+        g = np.take(self._table, i, axis=0)
+        s = (t - g[:, 34]) / g[:, 35]
+        a = s * g[:, 33]
+        u = np.empty((len(s), 11))
+        u[:, :3] = points
+        np.multiply(points, np.sin(a)[:, None], out=u[:, 3:6])
+        np.multiply(points, (1.0 - np.cos(a))[:, None], out=u[:, 6:9])
+        u[:, 9] = 1.0
+        u[:, 10] = s
+        return np.einsum("nij,nj->ni", g[:, :33].reshape(-1, 3, 11), u)
 
     def T_ref_at(self, t_s: float) -> np.ndarray:
         """The sensor's pose at t_s (relative to the reference instant) in the reference frame."""
-        i, s = self._segment(np.array([t_s], dtype=np.float64))
-        i, s = int(i[0]), float(s[0])
-        return interpolate(self.T_ref_t[i], self.T_ref_t[i + 1], s)
+        if self._last_at is not None and self._last_at[0] == t_s:  # the stamp: asked twice
+            return self._last_at[1].copy()
+        # As apply() finds the segment, in Python floats (~10x faster for one instant)
+        knots = self._knots
+        t = min(max(float(t_s), knots[0]), knots[-1])
+        i = min(max(bisect.bisect_right(knots, t) - 1, 0), len(knots) - 2)
+        s = (t - knots[i]) / (knots[i + 1] - knots[i])
+        # interpolate(T_ref_t[i], T_ref_t[i + 1], s), with the segment's rotation vector known
+        T0, T1 = self.T_ref_t[i], self.T_ref_t[i + 1]
+        T = make_pose(T0[:3, :3] @ matrix_from_rotvec(s * self._rotvec[i]),
+                      (1 - s) * T0[:3, 3] + s * T1[:3, 3])
+        self._last_at = (t_s, T.copy())
+        return T
 
 
 @dataclass(frozen=True)
@@ -187,6 +216,7 @@ class Deskewer:
         self.select = select
         self.last_stamp_s: float | None = None
         self.last_period_s = default_period_s
+        self._sweep: tuple[Scan, tuple[float, float]] | None = None  # sweep_s's last
 
     def state(self) -> dict:
         return {"last_stamp_s": self.last_stamp_s, "last_period_s": self.last_period_s}
@@ -199,12 +229,19 @@ class Deskewer:
         """Whether __call__ deskews scan (deskew on, per-point times, points)."""
         return bool(self.cfg.deskew and scan.point_times is not None and len(scan.points))
 
-    @staticmethod
-    def reference_s(scan: Scan) -> float:
+    def sweep_s(self, scan: Scan) -> tuple[float, float]:
+        """The first and last point time of a scan with per-point times (s, relative to its
+        stamp); each pass over the times once per scan (the IMU front-end asks first)."""
+        if self._sweep is None or self._sweep[0] is not scan:
+            times = scan.point_times
+            self._sweep = (scan, (float(times.min()), float(times.max())))
+        return self._sweep[1]
+
+    def reference_s(self, scan: Scan) -> float:
         """The reference instant of a scan with per-point times, relative to its stamp: the
         middle of its sweep."""
-        times = scan.point_times
-        return 0.5 * (float(times.min()) + float(times.max()))
+        first, last = self.sweep_s(scan)
+        return 0.5 * (first + last)
 
     def __call__(self, scan: Scan, T_prev_curr: np.ndarray,
                  motion: SweepMotion | None = None) -> DeskewedScan:
@@ -231,6 +268,7 @@ class Deskewer:
                                motion=motion)
             return dataclasses.replace(out, points=out._deskew(scan.points, times - ref_s))
         idx = self.select(scan.points, self.voxel_m, self.cfg.min_range_m, self.cfg.max_range_m)
-        out = DeskewedScan(scan, scan.points[idx], ref_s, period_s, T_prev_curr, self.select, idx,
+        raw = scan.points[idx]  # (gathered once: ~0.1 ms a scan)
+        out = DeskewedScan(scan, raw, ref_s, period_s, T_prev_curr, self.select, idx,
                            self.voxel_m, motion)
-        return dataclasses.replace(out, points=out._deskew(scan.points[idx], times[idx] - ref_s))
+        return dataclasses.replace(out, points=out._deskew(raw, times[idx] - ref_s))
