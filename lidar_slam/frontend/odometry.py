@@ -65,9 +65,10 @@ class VoxelSelector:
         if len(chosen) == 0:
             return np.zeros(0, dtype=np.int64)
         # The range crop after the selection, on one point per voxel instead of every point: a
-        # voxel cut by the range sphere may lose the point that the crop-first order kept.
-        chosen = chosen[range_mask(chosen, min_range_m, max_range_m)]
-        return (chosen[:, 0].view(np.uint64) & _INDEX_MASK).view(np.int64)
+        # voxel cut by the range sphere may lose the point that the crop-first order kept. (On
+        # the indices: cheaper than gathering the points' rows first.)
+        idx = (chosen[:, 0].view(np.uint64) & _INDEX_MASK).view(np.int64)
+        return idx[range_mask(chosen, min_range_m, max_range_m)]
 
 
 @dataclass(frozen=True)
