@@ -4,9 +4,11 @@ import numpy as np
 import pytest
 from kiss_icp.config import load_config as kiss_load_config
 from kiss_icp.kiss_icp import KissICP
+from kiss_icp.pybind import kiss_icp_pybind as kp
 
 from lidar_slam.config import load_config
-from lidar_slam.frontend.odometry import Odometry
+from lidar_slam.frontend.crop import range_mask
+from lidar_slam.frontend.odometry import Odometry, VoxelSelector
 from lidar_slam.io.sources import open_source
 
 
@@ -19,6 +21,34 @@ def test_odometry_equals_stock_kiss_icp_on_kitti(kitti16):
         T = ours.register(scan.points)
         np.testing.assert_allclose(T, stock.last_pose, atol=1e-6)
     assert np.linalg.norm(T[:3, 3]) > 5.0  # the car moved ~6 m
+
+
+def _selected_on_a_tagged_copy(points, voxel_m, min_range_m, max_range_m):
+    """The selection as first written: kiss-icp's downsample of a NumPy copy of the points
+    whose x carries each point's index in its lowest 22 bits, then the range crop."""
+    tagged = np.array(points, dtype=np.float64, order="C")
+    x = tagged[:, 0].view(np.uint64)
+    x &= ~np.uint64((1 << 22) - 1)
+    x |= np.arange(len(points), dtype=np.uint64)
+    chosen = np.asarray(kp._voxel_down_sample(kp._Vector3dVector(tagged), voxel_m))
+    chosen = chosen[range_mask(chosen, min_range_m, max_range_m)]
+    return (np.ascontiguousarray(chosen[:, 0]).view(np.uint64) & ((1 << 22) - 1)).astype(np.int64)
+
+
+def test_voxel_selection_is_the_tagged_copy_selection_in_the_same_order(kitti16):
+    select = VoxelSelector()
+    scans = list(open_source(kitti16).scans(0, 2))
+    # a small input first: the tags grow for the larger scans after it
+    for points in (scans[0].points[:1000], scans[0].points, scans[1].points,
+                   scans[1].points.astype(np.float32)):
+        untouched = points.copy()
+        for voxel_m, min_range_m, max_range_m in ((0.5, 0.0, 100.0), (1.0, 5.0, 30.0)):
+            idx = select(points, voxel_m, min_range_m, max_range_m)
+            assert idx.dtype == np.int64
+            np.testing.assert_array_equal(
+                idx, _selected_on_a_tagged_copy(points, voxel_m, min_range_m, max_range_m))
+        np.testing.assert_array_equal(points, untouched)  # the caller's points stay as read
+    assert len(select(scans[0].points[:0], 0.5, 0.0, 100.0)) == 0
 
 
 def test_predict_extrapolates_constant_velocity():

@@ -5,7 +5,7 @@ import pytest
 
 from lidar_slam.errors import InputError
 from lidar_slam.io.ply import write_xyz_ply
-from lidar_slam.io.point_times import relative_seconds
+from lidar_slam.io.point_times import relative_seconds, time_unit_s
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
 from lidar_slam.io.trajectory import read_times
@@ -51,6 +51,20 @@ def test_time_field_is_picked_up_and_converted_to_seconds(tmp_path):
                                       (np.array([0, 1e8]), 0.1)])
 def test_time_units_are_inferred(raw, span):
     assert abs(relative_seconds(raw).max() - span) < 1e-9
+
+
+@pytest.mark.parametrize("dtype", ["f4", "f8", "i4", "i8", "u4", "u8"])
+def test_offsets_take_the_unit_time_unit_s_gives_the_raw_field(dtype):
+    """relative_seconds picks the unit from the span it already has: the one time_unit_s reads
+    from the raw field, for offsets of every unit and datatype (times near zero, no stamp)."""
+    rng = np.random.default_rng(0)
+    for span in (0.1, 0.5, 2.0, 1e3, 1e5, 1e6, 5e6, 1e8):
+        raw = np.sort(rng.uniform(0, span, 1000)).astype(dtype)
+        scale = time_unit_s(raw)
+        if max(abs(float(raw.min())), abs(float(raw.max()))) * scale > 1.0:
+            continue  # not an offset: taken from the earliest point (another test)
+        expected = raw.astype(np.float64) * scale if scale != 1.0 else raw.astype(np.float64)
+        np.testing.assert_array_equal(relative_seconds(raw), expected)
 
 
 def test_relative_times_keep_their_zero_and_absolute_ones_start_at_zero():

@@ -39,27 +39,36 @@ class VoxelSelector:
 
     kiss-icp returns points, not indices, so each point's index rides in the lowest 22 mantissa
     bits of its x coordinate while it is selected (a change of under 1e-9 of |x|: 0.1 um at
-    100 m); the caller keeps using the untouched points. Several times faster than NumPy.
+    100 m); the caller keeps using the untouched points. Several times faster than NumPy. The
+    tags are written straight into kiss-icp's own copy of the points (its vector's buffer, which
+    NumPy views without a copy), so the scan is copied once, by the C++ conversion it needs.
     """
+
+    def __init__(self) -> None:
+        self._ids = np.zeros(0, dtype=np.uint64)  # 0, 1, 2, ...: the tags, grown as needed
 
     def __call__(self, points: np.ndarray, voxel_m: float, min_range_m: float,
                  max_range_m: float) -> np.ndarray:
         """Indices (int64) of the selected points of points (N,3)."""
-        if len(points) == 0:
+        n = len(points)
+        if n == 0:
             return np.zeros(0, dtype=np.int64)
-        if len(points) > int(_INDEX_MASK) + 1:
-            raise ValueError(f"{len(points)} points: at most {int(_INDEX_MASK) + 1} per scan")
-        tagged = np.array(points, dtype=np.float64, order="C")
-        x = tagged[:, 0].view(np.uint64)
+        if n > int(_INDEX_MASK) + 1:
+            raise ValueError(f"{n} points: at most {int(_INDEX_MASK) + 1} per scan")
+        if len(self._ids) < n:
+            self._ids = np.arange(n, dtype=np.uint64)
+        vec = _vec(points)
+        x = np.asarray(vec)[:, 0].view(np.uint64)  # a view into the vector: tagged in place
         x &= ~_INDEX_MASK
-        x |= np.arange(len(points), dtype=np.uint64)
-        chosen = np.asarray(kp._voxel_down_sample(_vec(tagged), voxel_m))
+        x |= self._ids[:n]
+        chosen = np.asarray(kp._voxel_down_sample(vec, voxel_m))
         if len(chosen) == 0:
             return np.zeros(0, dtype=np.int64)
         # The range crop after the selection, on one point per voxel instead of every point: a
-        # voxel cut by the range sphere may lose the point that the crop-first order kept.
-        chosen = chosen[range_mask(chosen, min_range_m, max_range_m)]
-        return (np.ascontiguousarray(chosen[:, 0]).view(np.uint64) & _INDEX_MASK).astype(np.int64)
+        # voxel cut by the range sphere may lose the point that the crop-first order kept. (On
+        # the indices: cheaper than gathering the points' rows first.)
+        idx = (chosen[:, 0].view(np.uint64) & _INDEX_MASK).view(np.int64)
+        return idx[range_mask(chosen, min_range_m, max_range_m)]
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,11 @@ def time_unit_s(raw: np.ndarray) -> float:
     """Seconds per unit of a per-point time field (1, 1e-6 or 1e-9), from its datatype and span."""
     values = np.asarray(raw)
     span = float(values.max()) - float(values.min()) if values.size else 0.0
-    if values.dtype.kind == "f":
+    return _unit_s(values.dtype.kind == "f", span)
+
+
+def _unit_s(is_float: bool, span: float) -> float:
+    if is_float:
         return 1.0 if span <= 2.0 else 1e-6 if span <= 2e6 else 1e-9
     return 1e-6 if 1e3 <= span <= 1e6 else 1e-9
 
@@ -65,7 +69,9 @@ def relative_seconds(raw: np.ndarray, stamp_ns: int | None = None) -> np.ndarray
                 if is_int:
                     return (raw.astype(np.int64) * round(scale * 1e9) - stamp_ns) * 1e-9
                 return values * scale - stamp_s
-    scale = time_unit_s(raw)
+    # time_unit_s(raw) from the span already known (the float64 extremes are the raw ones,
+    # converted: two passes over the times less per scan)
+    scale = _unit_s(raw.dtype.kind == "f", hi - lo)
     if max(abs(lo), abs(hi)) * scale <= OFFSET_MAX_S:
         return values if scale == 1.0 else values * scale
     _warn_once("per-point times are neither offsets from the scan stamp nor near it; taken "
