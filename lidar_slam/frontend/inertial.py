@@ -237,7 +237,7 @@ class ImuFrontend:
         pred = pim.predict(self.nav, self.bias)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.BetweenFactorPose3(_X(k - 1), _X(k), self._imu_motion(self.T_Wo_L, T),
-                                           self._between_noise()))
+                                           _BETWEEN_NOISE))
         graph.add(gtsam.CombinedImuFactor(_X(k - 1), _V(k - 1), _X(k), _V(k), _B(k - 1), _B(k),
                                           pim))
         values = gtsam.Values()
@@ -309,10 +309,6 @@ class ImuFrontend:
     def _imu_motion(self, T_Wo_La: np.ndarray, T_Wo_Lb: np.ndarray) -> gtsam.Pose3:
         """The IMU's motion between two registered lidar poses."""
         return gtsam.Pose3(self.T_imu_lidar @ inverse(T_Wo_La) @ T_Wo_Lb @ self.T_lidar_imu)
-
-    @staticmethod
-    def _between_noise():
-        return _BETWEEN_NOISE
 
     def _propagate(self, t_ref: float, t_end: float, t_from: float
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -499,7 +495,7 @@ class ImuFrontend:
                                                   _B(k), pim))
                 graph.add(gtsam.BetweenFactorPose3(_X(k - 1), _X(k),
                                                    self._imu_motion(pend[i - 1][1], pend[i][1]),
-                                                   self._between_noise()))
+                                                   _BETWEEN_NOISE))
         graph.add(gtsam.PriorFactorPose3(_X(k0), gtsam.Pose3(T_G_I[0]), gtsam.noiseModel.Diagonal
                                          .Sigmas(np.r_[[FIRST_SIGMA_RAD] * 3,
                                                        [FIRST_SIGMA_M] * 3])))

@@ -11,6 +11,7 @@ KissICP's on real scans.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -140,7 +141,7 @@ class Odometry:
             source = voxel_centroids(np.asarray(frame_down), o.refine_voxel_m)
         else:  # every k-th: kiss-icp's order is its hash map's, spatially scattered
             source = np.asarray(frame_down)
-            source = source[::max(1, -(-len(source) // o.refine_max_points))]
+            source = source[::max(1, math.ceil(len(source) / o.refine_max_points))]
         if len(source) < 3 or len(self._target) < 3:
             return T_world_points
         T = self._target.align(source, T_world_points, o.refine_max_correspondence_m)
