@@ -158,9 +158,31 @@ class VerifyConfig(_Section):
     info_min_rot_sigma_deg: Positive = 0.2
 
 
+class OdometryInformationConfig(_Section):
+    """How sure each keyframe-to-keyframe odometry edge is, from its own data
+    (lidar_slam.frontend.edge_information: the point-to-plane Hessian of the keyframe's cloud on
+    the previous one, over the measured residual)."""
+
+    # Off: every edge gets backend.odom_rot_sigma_deg / odom_trans_sigma_m.
+    enabled: bool = True
+    # One residual per cell of this size (m): neighbouring residuals on one surface are not
+    # independent.
+    cell_m: Positive = 2.0
+    max_correspondence_m: Positive = 1.0
+    # The residual's RMS is taken as at least this (m): sensor noise and the clouds' 0.5 m voxel
+    # centroids leave more than this on any real surface.
+    min_residual_m: Positive = 0.01
+    # Floors: no direction more certain than these 1-sigmas (the matrix scaled down uniformly).
+    min_trans_sigma_m: Positive = 0.005
+    min_rot_sigma_deg: Positive = 0.1
+
+
 class BackendConfig(_Section):
+    # Odometry edges whose own information cannot be had (an empty keyframe, odom_information
+    # off), 1-sigma per keyframe edge.
     odom_rot_sigma_deg: Positive = 0.1
     odom_trans_sigma_m: Positive = 0.05
+    odom_information: OdometryInformationConfig = OdometryInformationConfig()
     prior_rot_sigma_deg: Positive = 1e-3
     prior_trans_sigma_m: Positive = 1e-3
     huber_k: Positive = 1.345

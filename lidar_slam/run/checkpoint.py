@@ -305,6 +305,9 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
             anchors.insert(0, kf)
     for kf in anchors:
         pipe.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
+    for kf_id in range(len(r.store)):  # the odometry edges' information, as the run had it
+        kf = r.store.get(kf_id)
+        pipe.weigh_keyframe(kf_id, kf.T_world_kf_odom, kf.points)
     for row in meta["loop_records"]:
         T = row.pop("T_match_query")
         r.loops.append(LoopRecord(**row, T_match_query=None if T is None else np.array(T)))
@@ -314,7 +317,8 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
                  (f, e) in zip(a["loop_ids"], a["loop_T"], a["loop_info"], a["loop_fit"])]
         by_query = {c.query: c for c in loops}
         for kf_id in range(len(r.store)):
-            pipe.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
+            pipe.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
+                                      r.odom_information.get(kf_id))
             if kf_id in by_query:
                 pipe.backend.add_loop(by_query[kf_id])
         if "backend_live" in a:
