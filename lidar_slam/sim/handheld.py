@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from lidar_slam.io.atomic import write_text_atomic
 from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
-from lidar_slam.sim.sensor import SensorModel, get_sensor
+from lidar_slam.sim.sensor import LidarModel, get_sensor
 from lidar_slam.sim.world import World, WorldParams, build_world
 
 log = logging.getLogger(__name__)
@@ -306,7 +306,7 @@ class Site:
     ground: Callable[[np.ndarray], np.ndarray]
 
 
-def build_site(kind: str, seed: int, sensor: SensorModel) -> Site:
+def build_site(kind: str, seed: int, sensor: LidarModel) -> Site:
     """An interior around a ring corridor, or a plaza ringed by streets and buildings."""
     from lidar_slam.sim.indoor import IndoorLayout, build_indoor_world
 
@@ -350,12 +350,13 @@ def clearance_m(world: World, traj: SmoothTrajectory, t0_s: float, t1_s: float,
 
 
 def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_s: float,
-                      sensor: str | SensorModel = "os1-64", imu: ImuOptions | None = None,
+                      sensor: str | LidarModel = "os1-64", imu: ImuOptions | None = None,
                       gnss: GnssOptions | None = None,
-                      on_scan: Callable[[int], None] | None = None):
+                      on_scan: Callable[[int], None] | None = None, stamp: str = "start"):
     """A handheld walk of duration_s (s) through a seeded indoor or outdoor world, written as a
-    KITTI-layout sequence (as simulate_sequence; scan k at k / rate_hz, the truth in poses.txt)
-    with imu.csv / gnss.csv from the same trajectory. Returns (SimSummary, MotionStats)."""
+    KITTI-layout sequence (as simulate_sequence; sweep k from k / rate_hz, stamped at its start
+    or end as stamp says, the truth in poses.txt) with imu.csv / gnss.csv from the same
+    trajectory. Returns (SimSummary, MotionStats)."""
     from lidar_slam.sim.sequence import write_sequence
 
     sensor = get_sensor(sensor)
@@ -384,7 +385,7 @@ def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_
             "  freq_hz (a shake's).\n")
     summary = write_sequence(out_dir, site.world, sensor, motion.trajectory, stamps,
                              motion.trajectory(stamps), seed, np.eye(4), world_s, on_scan, imu,
-                             gnss, motion=text)
+                             gnss, motion=text, stamp=stamp)
     write_bursts(Path(out_dir) / "bursts.csv", motion.bursts)
     log.info("handheld %s seed %d: %s", world_kind, seed, st)
     return summary, st
