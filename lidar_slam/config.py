@@ -222,6 +222,12 @@ class LoopConfig(_Section):
     # while 97-100 % of the wrong candidates were further (docs/design.md, "Loop thresholds").
     max_gap_m: NonNegative = 20.0
     max_drift: NonNegative = 0.1
+    # A verified loop is kept only when the correction it implies (its pose against the
+    # odometry's) is one the odometry can have drifted: Mahalanobis distance under the
+    # covariance accumulated along the odometry edges since the match keyframe (each edge's own
+    # information, lidar_slam.frontend.edge_information) plus the loop's own, against the
+    # chi-square(6) quantile of this tail probability (1e-6: 38.3). 0 turns the gate off.
+    drift_gate_p: Fraction = 1e-6
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs

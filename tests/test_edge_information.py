@@ -84,3 +84,26 @@ def test_odometry_variance_grows_with_residuals_beyond_the_edges_own_information
     rot, trans = odometry_variance(edges, poses)
     assert rot == 1.0  # never below 1
     assert 6.0 < trans < 14.0, trans  # (3 cm / 1 cm)^2 = 9
+
+
+def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_aliased_one():
+    from lidar_slam.config import load_config
+    from lidar_slam.loop.detector import LoopDetector
+    from lidar_slam.map.keyframes import KeyframeStore
+
+    rng = np.random.default_rng(4)
+    store = KeyframeStore(None)
+    room = _room(rng, 0.01)
+    for k in range(20):  # 20 keyframes 0.5 m apart along x in the same room
+        store.add(k, make_pose(np.eye(3), [0.5 * k, 0.0, 0.0]), room - [0.5 * k, 0, 0], None)
+    det = LoopDetector(load_config(), store)
+    loop_info = np.diag([np.radians(0.2) ** -2] * 3 + [0.02 ** -2] * 3)
+    T_odom = make_pose(np.eye(3), [9.5, 0.0, 0.0])  # keyframe 19 seen from keyframe 0
+    drifted = T_odom @ make_pose(np.eye(3), [0.03, -0.02, 0.0])
+    assert det.drift_d2(0, 19, drifted, loop_info) < 10.0
+    c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
+    turned = T_odom @ make_pose(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), [0.0, 0.0, 0.0])
+    assert det.drift_d2(0, 19, turned, loop_info) > 1000.0
+    shifted = T_odom @ make_pose(np.eye(3), [3.0, 0.0, 0.0])  # a look-alike one bay further
+    assert det.drift_d2(0, 19, shifted, loop_info) > det._gate_d2
+    store.close()
