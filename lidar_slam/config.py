@@ -228,6 +228,11 @@ class LoopConfig(_Section):
     # information, lidar_slam.frontend.edge_information) plus the loop's own, against the
     # chi-square(6) quantile of this tail probability (1e-6: 38.3). 0 turns the gate off.
     drift_gate_p: Fraction = 1e-6
+    # With an IMU, a loop is also refused when the up direction it implies for the query
+    # keyframe (the match's, as the IMU saw it, turned by the loop) is further than this from
+    # the one the IMU saw at the query: gravity fixes roll and pitch whatever the drift. True
+    # loops of the bank: at most 1.8 deg (hand-held office), 1.3 (drone in a warehouse). 0: off.
+    max_tilt_disagreement_deg: NonNegative = 3.0
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs

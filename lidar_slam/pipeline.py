@@ -7,6 +7,7 @@ With an IMU, deskew follows the integrated IMU and odometry starts from its pred
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable
@@ -44,6 +45,8 @@ class RunResult:
     # keyframe id -> information of the odometry edge from the previous keyframe (its own data:
     # lidar_slam.frontend.edge_information), where it could be had
     odom_information: dict[int, np.ndarray] = field(default_factory=dict)
+    # keyframe id -> unit vector against gravity in the keyframe's frame (the IMU's), with an IMU
+    kf_up: dict[int, np.ndarray] = field(default_factory=dict)
     loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
     skipped_empty: int = 0
     skipped_small: int = 0  # scans with fewer than data.min_points points in range
@@ -172,6 +175,9 @@ class Pipeline:
         if len(kf.points):
             self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
         info = self.weigh_keyframe(kf.id, kf.T_world_kf_odom, kf.points)
+        up = self.inertial.up_in_lidar() if self.inertial is not None else None
+        if up is not None and odom.registered:
+            self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up
         if self.backend is not None:
             t0 = time.perf_counter()
             self.backend.add_keyframe(kf.id, kf.T_world_kf_odom, info)
@@ -196,11 +202,33 @@ class Pipeline:
     def _apply_loops(self, upto: int) -> None:
         """Collect the loop results of keyframes <= upto (in order) and update the back-end."""
         for res in self.loops.collect(upto):
+            res = self._check_tilt(res)
             self.result.loops.extend(res.records)
             if res.constraint is not None:
                 self.backend.add_loop(res.constraint)
             self.loops_applied_upto = res.kf_id
         self.backend.update(force=False)
+
+    def _check_tilt(self, res):
+        """res (a LoopResult) without its constraint when the IMU says the loop tilts the query
+        keyframe (loop.max_tilt_disagreement_deg): the up direction seen at the match, carried
+        by the loop into the query's frame, against the one seen at the query."""
+        c, limit = res.constraint, self.cfg.loop.max_tilt_disagreement_deg
+        if c is None or not limit:
+            return res
+        up_m, up_q = self.result.kf_up.get(c.match), self.result.kf_up.get(c.query)
+        if up_m is None or up_q is None:
+            return res
+        cos = float(np.clip((c.T_match_query[:3, :3].T @ up_m) @ up_q, -1.0, 1.0))
+        tilt = float(np.degrees(np.arccos(cos)))
+        if tilt <= limit:
+            return res
+        log.info("loop %d -> %d refused: it tilts the query %.1f deg from the IMU's gravity",
+                 c.query, c.match, tilt)
+        records = tuple(dataclasses.replace(r, accepted=False, reason=f"gravity: tilt "
+                                            f"{tilt:.1f} deg > {limit:.1f}") if r.accepted
+                        else r for r in res.records)
+        return dataclasses.replace(res, records=records, constraint=None)
 
     def current_kf_poses(self) -> dict[int, np.ndarray]:
         """Best current T_world_kf of every keyframe (live estimate, or odometry)."""

@@ -107,3 +107,30 @@ def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_
     shifted = T_odom @ make_pose(np.eye(3), [3.0, 0.0, 0.0])  # a look-alike one bay further
     assert det.drift_d2(0, 19, shifted, loop_info) > det._gate_d2
     store.close()
+
+
+def test_a_loop_that_tilts_the_query_against_the_imus_gravity_is_refused(tmp_path):
+    from lidar_slam.config import load_config
+    from lidar_slam.loop.detector import LoopRecord, LoopResult
+    from lidar_slam.pipeline import Pipeline
+    from lidar_slam.types import LoopConstraint
+
+    cfg = load_config()
+    pipe = Pipeline(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"enabled": False})}),
+                    tmp_path / "run")
+    pipe.cfg = cfg
+    pipe.result.kf_up = {0: np.array([0.0, 0.0, 1.0]), 9: np.array([0.0, 0.0, 1.0])}
+
+    def result(roll_deg: float) -> LoopResult:
+        a = np.radians(roll_deg)
+        R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        T = make_pose(R, [1.0, 0.0, 0.0])
+        rec = LoopRecord(90, 0, 9, 0, 0.2, 0.0, 0.9, 0.05, True, "", T)
+        return LoopResult(9, (rec,), LoopConstraint(9, 0, T, np.eye(6), 0.9, 0.05))
+
+    kept = pipe._check_tilt(result(1.0))
+    assert kept.constraint is not None and kept.records[0].accepted
+    refused = pipe._check_tilt(result(5.0))
+    assert refused.constraint is None and not refused.records[0].accepted
+    assert refused.records[0].reason.startswith("gravity: tilt 5.0 deg")
+    pipe.close()

@@ -226,6 +226,7 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "loop_T": np.array([c.T_match_query for c in constraints]).reshape(-1, 4, 4),
         "loop_info": np.array([c.information for c in constraints]).reshape(-1, 6, 6),
         "loop_fit": np.array([[c.fitness, c.rmse_m] for c in constraints]).reshape(-1, 2),
+        "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
         "backend_live": (pipe.backend.state() if pipe.backend is not None
                          else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
@@ -276,6 +277,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.stamps_s = [float(s) for s in a["stamps_s"]]
     r.odom_poses = list(a["odom_poses"])
     r.frame_kf = [int(k) for k in a["frame_kf"]]
+    r.kf_up = {int(row[0]): np.array(row[1:]) for row in a.get("kf_up", np.zeros((0, 4)))}
     r.skipped_empty = meta["skipped_empty"]
     r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]
