@@ -81,6 +81,15 @@ class OdometryConfig(_Section):
     refine_max_correspondence_m: Positive = 1.0
     refine_max_correction_m: Positive = 0.5
     refine_max_correction_deg: Positive = 2.0
+    # Each scan's refinement proves itself (2026-12-03): a share of the scan's points is held
+    # out of its source, and the refined pose is kept only when those points' point-to-plane
+    # residuals against the same target (truncated at 3 robust sigmas) fall by more than
+    # refine_evidence_z standard errors of their mean change (a one-sided paired test); else
+    # kiss-icp's pose stands. Checked first on one Gauss-Newton step fitted on the held-out
+    # points themselves: when even that is not significant, the ICP is skipped.
+    # docs/benchmarks/2026-12-03-refine-proof.md. False: every slow scan refined as before.
+    refine_evidence: bool = True
+    refine_evidence_z: Positive = 2.0
 
 
 class KeyframeConfig(_Section):
