@@ -81,6 +81,18 @@ class OdometryConfig(_Section):
     refine_max_correspondence_m: Positive = 1.0
     refine_max_correction_m: Positive = 0.5
     refine_max_correction_deg: Positive = 2.0
+    # refine_evidence: each slow scan's refinement proves itself (2026-12-03): a share of the
+    # scan's points is held out of its source, and the refined pose is kept only when those
+    # points' point-to-plane residuals against the same target (truncated at 3 robust sigmas)
+    # fall by more than refine_evidence_z standard errors of their mean change (a one-sided
+    # paired test); else kiss-icp's pose stands. Checked first on one Gauss-Newton step fitted
+    # on the held-out points themselves: when even that is not significant, the ICP is skipped.
+    # Off by default: on 7 sequences it tied every slow scan refined on the median (odometry
+    # and final ATE 1.00x) and lost the worst row (final ATE 1.64x, a lidar-only walk); most of
+    # its refusals were of refinements that helped against the truth
+    # (docs/benchmarks/2026-12-03-refine-proof.md).
+    refine_evidence: bool = False
+    refine_evidence_z: Positive = 2.0
 
 
 class KeyframeConfig(_Section):

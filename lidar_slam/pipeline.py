@@ -57,8 +57,9 @@ class RunResult:
     # (match kf, query kf) -> "inlier" / "rejected": what the final solve made of each loop
     loop_backend: dict = field(default_factory=dict)
     backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
-    # slow scans refined against the last keyframes, and refinements refused (see odometry)
-    refined_scans: tuple[int, int] = (0, 0)
+    # slow scans refined against the last keyframes; refinements refused by the correction
+    # gate, by the held-out points' evidence after the ICP, and before it (see odometry)
+    refined_scans: tuple[int, int, int, int] = (0, 0, 0, 0)
     # With IMU / GNSS in the final solve (lidar_slam.backend.inertial), both taking the frame of
     # the output poses (poses_kitti.txt: frame 0 at its stamp is the identity): where it lies
     # on the Earth (GNSS; lidar_slam.geo.GeoReference), and the rotation from it to a
@@ -242,7 +243,9 @@ class Pipeline:
         an IMU or GNSS (inertial: lidar_slam.io.inertial_input.InertialInput), the final solve
         includes them (lidar_slam.backend.inertial), with or without loops."""
         r = self.result
-        r.refined_scans = (self.odometry.n_refined, self.odometry.n_refine_refused)
+        o = self.odometry
+        r.refined_scans = (o.n_refined, o.n_refine_refused, o.n_refine_unproven,
+                           o.n_refine_skipped)
         if self.adaptive is None:  # no scan at all
             self.start(adapt.auto_values(self.cfg, None))
         use_inertial = inertial is not None and (inertial.imu is not None

@@ -162,3 +162,83 @@ def test_refined_slow_scans_do_not_stretch_a_handheld_indoor_walk(handheld_walk,
     truth = open_source(handheld_walk).ground_truth[: len(est)]
     scale = _similarity_scale(est[:, :3, 3], truth[:, :3, 3])
     assert abs(scale - 1.0) < 0.02, scale
+
+
+def _room(rng, n: int, noise_m: float, shift_wall_m: float = 0.0) -> np.ndarray:
+    """n points (N, 3) on the floor, ceiling and walls of a 20 x 10 x 3 m room around the origin
+    (sensor at 1.5 m), the +x end wall moved out by shift_wall_m, with Gaussian noise."""
+    u = rng.uniform(-1, 1, size=(n, 2))
+    face = rng.integers(0, 6, size=n)
+    x, y, z = 10.0 * u[:, 0], 5.0 * u[:, 1], 1.5 * u[:, 1]
+    pts = np.select([face[:, None] == k for k in range(6)], [
+        np.c_[x, y, np.full(n, -1.5)], np.c_[x, y, np.full(n, 1.5)],
+        np.c_[np.full(n, 10.0 + shift_wall_m), y, z], np.c_[np.full(n, -10.0), y, z],
+        np.c_[x, np.full(n, 5.0), z], np.c_[x, np.full(n, -5.0), z]])
+    return pts + rng.normal(0, noise_m, size=pts.shape)
+
+
+def _refined(target: np.ndarray, scan: np.ndarray, T_kiss: np.ndarray) -> tuple[Odometry,
+                                                                                  np.ndarray]:
+    odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
+                                                       "refine_evidence": True}}))
+    odo.add_anchor(np.eye(4), target)
+    return odo, odo._refine(scan, T_kiss)
+
+
+def test_slow_scan_refinement_refused_when_its_target_pulls_it_off():
+    """The keyframes' cloud has the end wall 0.3 m out (a moved wall, a keyframe placed
+    wrongly): plane ICP from the true pose is pulled along x, and the scan's held-out points
+    (which fit the truth) refuse it: kiss-icp's pose stands, counted as refused by evidence."""
+    from lidar_slam.frontend.odometry import plane_evidence
+    from lidar_slam.registration import PlaneTarget
+
+    rng = np.random.default_rng(0)
+    target, scan = _room(rng, 40000, 0.005, shift_wall_m=0.3), _room(rng, 6000, 0.01)
+    odo, T = _refined(target, scan, np.eye(4))
+    np.testing.assert_array_equal(T, np.eye(4))
+    assert odo.n_refined == 0 and odo.n_refine_skipped + odo.n_refine_unproven == 1
+    # The ICP itself (what the always rule kept) moves the pose off the truth, and the same
+    # held-out points find it worse.
+    pt = PlaneTarget(target, 0.5, 20, 1.0)
+    T_icp = pt.align(scan[::3], np.eye(4), 1.0)
+    assert T_icp[0, 3] > 0.02, T_icp[:3, 3]
+    ev = plane_evidence(pt, scan[1::3], np.eye(4), T_icp, 1.0)
+    assert ev.gain_m < 0 and not ev.proven(2.0), ev
+
+
+def test_slow_scan_refinement_kept_when_it_mends_kiss_icps_pose():
+    """kiss-icp's pose 8 cm and 0.5 deg off in a room the keyframes saw as it is: the plane
+    ICP brings it back and the held-out points prove it; refined, counted."""
+    from lidar_slam.geometry import matrix_from_rotvec
+
+    rng = np.random.default_rng(1)
+    target, scan = _room(rng, 40000, 0.005), _room(rng, 6000, 0.01)
+    T_kiss = np.eye(4)
+    T_kiss[:3, :3] = matrix_from_rotvec(np.radians([0.0, 0.0, 0.5]))
+    T_kiss[:3, 3] = [0.08, -0.03, 0.02]
+    odo, T = _refined(target, scan, T_kiss)
+    assert odo.n_refined == 1 and odo.last_evidence.proven(2.0)
+    assert np.linalg.norm(T[:3, 3]) < 0.01 and np.linalg.norm(T_kiss[:3, 3]) > 0.08
+    assert odo.n_refine_skipped == odo.n_refine_unproven == odo.n_refine_refused == 0
+
+
+def test_summary_counts_each_slow_scan_refinement_outcome(tmp_path):
+    """summary.json says how many slow scans were refined, refused by the correction gate, by
+    the held-out evidence after the ICP, or before it; every slow registered scan after the
+    first keyframe is one of them."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "sample_scans"
+    (tmp_path / "proven.yaml").write_text("odometry:\n  refine_evidence: true\n")
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(sample), "--out",
+                           str(tmp_path / "o"), "--no-loops", "--n-scans", "30",
+                           "-c", str(tmp_path / "proven.yaml")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    counts = [s[k] for k in ("odometry_refined_scans", "odometry_refine_refused",
+                             "odometry_refine_unproven", "odometry_refine_skipped")]
+    assert all(isinstance(c, int) and c >= 0 for c in counts) and sum(counts) > 0, counts

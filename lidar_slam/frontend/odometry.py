@@ -21,7 +21,12 @@ from kiss_icp.pybind import kiss_icp_pybind as kp
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import DeskewedScan
-from lidar_slam.geometry import interpolate, rotation_angle_deg, transform_points
+from lidar_slam.geometry import (
+    interpolate,
+    matrix_from_rotvec,
+    rotation_angle_deg,
+    transform_points,
+)
 from lidar_slam.registration import PlaneTarget, voxel_centroids
 
 
@@ -88,6 +93,74 @@ is the prediction).
     T_world_first: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class PlaneEvidence:
+    """Held-out points' point-to-plane residuals against the refinement's target at kiss-icp's
+    pose and at another (refined, or one Gauss-Newton step fitted on them: the early check).
+    gain_m: mean per-point decrease of the truncated residual (m, > 0: the other pose fits
+    better); stderr_m: its standard error over the points; n: points matched at both poses."""
+
+    gain_m: float
+    stderr_m: float
+    n: int
+
+    def proven(self, z: float) -> bool:
+        """Whether the gain exceeds z standard errors (a one-sided paired test)."""
+        return self.n >= 6 and self.gain_m > z * self.stderr_m
+
+
+def _plane_residuals(target: PlaneTarget, points: np.ndarray, T: np.ndarray, max_m: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per point (N, 3) placed by T: n.(p - q) to its nearest target point q (m, signed),
+    whether q is within max_m, the placed point and q's normal."""
+    moved = transform_points(T, points)
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved, num_threads=1)
+    idx = np.asarray(idx, np.int64)
+    ok = (idx >= 0) & (np.asarray(sq) <= max_m**2)
+    idx = np.where(ok, idx, 0)
+    normal = target.cloud.normals()[idx, :3]
+    r = np.einsum("ij,ij->i", normal, moved - target.cloud.points()[idx, :3])
+    return r, ok, moved, normal
+
+
+def _gauss_newton_step(r: np.ndarray, moved: np.ndarray, normal: np.ndarray,
+                       weights: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """T moved by one point-to-plane Gauss-Newton step fitted on the signed residuals r of the
+    placed points (world frame; the rotation about T's origin, for conditioning)."""
+    J = np.hstack([np.cross(moved - T[:3, 3], normal), normal]) * weights[:, None]
+    H = J.T @ J
+    if np.linalg.cond(H) > 1e12:
+        return T
+    xi = -np.linalg.solve(H, J.T @ (r * weights))
+    out = T.copy()
+    out[:3, :3] = matrix_from_rotvec(xi[:3]) @ T[:3, :3]
+    out[:3, 3] += xi[3:]
+    return out
+
+
+def plane_evidence(target: PlaneTarget, held: np.ndarray, T_kiss: np.ndarray,
+                   T_other: np.ndarray | None, max_m: float) -> PlaneEvidence:
+    """Whether T_other fits held-out points (N, 3) better than T_kiss against target. None:
+    one Gauss-Newton step fitted on the held-out points (optimistic: the early check). The
+    residual is truncated at 3 robust sigmas of kiss-icp's (1.4826 MAD of the matched ones),
+    so that a few points off a wall's edge cannot decide."""
+    signed, ok0, moved, normal = _plane_residuals(target, held, T_kiss, max_m)
+    r0 = np.abs(signed)
+    if ok0.sum() < 6:
+        return PlaneEvidence(0.0, 0.0, int(ok0.sum()))
+    tau = max(3 * 1.4826 * float(np.median(r0[ok0])), 1e-6)
+    if T_other is None:
+        inlier = (ok0 & (r0 < tau)).astype(np.float64)
+        T_other = _gauss_newton_step(signed, moved, normal, inlier, T_kiss)
+    r1, ok1, _, _ = _plane_residuals(target, held, T_other, max_m)
+    both = ok0 & ok1
+    n = int(both.sum())
+    if n < 6:
+        return PlaneEvidence(0.0, 0.0, n)
+    d = np.minimum(r0[both], tau) - np.minimum(np.abs(r1[both]), tau)
+    return PlaneEvidence(float(d.mean()), float(d.std(ddof=1) / math.sqrt(n)), n)
+
+
 class Odometry:
     """kiss-icp scan-to-map registration; poses are T_world_scan with world = first scan."""
 
@@ -120,7 +193,10 @@ class Odometry:
         self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=o.refine_keyframes)
         self._target: PlaneTarget | None = None
         self.n_refined = 0
-        self.n_refine_refused = 0
+        self.n_refine_refused = 0  # by the correction gate (refine_max_correction_*)
+        self.n_refine_unproven = 0  # by the held-out points' evidence, after the ICP
+        self.n_refine_skipped = 0  # by the held-out points' evidence, before the ICP
+        self.last_evidence: PlaneEvidence | None = None  # of the last refinement looked at
 
     def add_anchor(self, T_world_kf: np.ndarray, points_kf: np.ndarray) -> None:
         """A new keyframe for the refinement target: its odometry pose and its cloud (N, 3) in
@@ -129,7 +205,8 @@ class Odometry:
         self._target = None
 
     def _refine(self, frame_down, T_world_points: np.ndarray) -> np.ndarray:
-        """T_world_points refined against the last keyframes (or kept, see the config)."""
+        """T_world_points refined against the last keyframes, or kept: by the correction gate,
+        or (odometry.refine_evidence) when the scan's held-out points do not prove it better."""
         o = self.cfg.odometry
         if self._target is None:
             points = np.concatenate([transform_points(T, np.asarray(p, np.float64))
@@ -137,19 +214,41 @@ class Odometry:
             self._target = PlaneTarget(points,
                                        self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
                                        o.refine_max_correspondence_m)
+        points = np.asarray(frame_down)
+        step = max(1, math.ceil(len(points) / o.refine_max_points))
+        held = None
+        if o.refine_evidence:
+            # The evidence needs points the refinement does not see: every other one of a
+            # small scan's goes to the source, and the held-out set is offset half a stride.
+            step = max(2, step)
+            held = points[step // 2::step]
+        source = points[::step]  # every k-th: kiss-icp's order is its hash map's, scattered
         if o.refine_voxel_m is not None:
-            source = voxel_centroids(np.asarray(frame_down), o.refine_voxel_m)
-        else:  # every k-th: kiss-icp's order is its hash map's, spatially scattered
-            source = np.asarray(frame_down)
-            source = source[::max(1, math.ceil(len(source) / o.refine_max_points))]
+            source = voxel_centroids(source if held is not None else points, o.refine_voxel_m)
+        self.last_evidence = None
         if len(source) < 3 or len(self._target) < 3:
             return T_world_points
+        if held is not None:
+            # Early: if even a Gauss-Newton step fitted on the held-out points themselves does
+            # not improve them significantly, a fit on the other points will not: skip the ICP.
+            hope = plane_evidence(self._target, held, T_world_points, None,
+                                  o.refine_max_correspondence_m)
+            if not hope.proven(o.refine_evidence_z):
+                self.last_evidence = hope
+                self.n_refine_skipped += 1
+                return T_world_points
         T = self._target.align(source, T_world_points, o.refine_max_correspondence_m)
         correction = np.linalg.inv(T_world_points) @ T
         if (np.linalg.norm(correction[:3, 3]) > o.refine_max_correction_m
                 or rotation_angle_deg(correction) > o.refine_max_correction_deg):
             self.n_refine_refused += 1
             return T_world_points
+        if held is not None:
+            self.last_evidence = plane_evidence(self._target, held, T_world_points, T,
+                                                o.refine_max_correspondence_m)
+            if not self.last_evidence.proven(o.refine_evidence_z):
+                self.n_refine_unproven += 1
+                return T_world_points
         self.n_refined += 1
         return T
 
@@ -244,7 +343,8 @@ class Odometry:
         return {"last_pose": self.last_pose, "last_delta": self.last_delta,
                 "map_points": np.asarray(self._map._point_cloud()),
                 "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
-                                      self.n_refined, self.n_refine_refused])}
+                                      self.n_refined, self.n_refine_refused,
+                                      self.n_refine_unproven, self.n_refine_skipped])}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
         """Continue from state(): the map's points go back into their voxels, the adaptive
@@ -260,5 +360,7 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        self.n_refined, self.n_refine_refused = (int(v) for v in (refined or (0, 0)))
+        refined = [int(v) for v in refined] + [0] * (4 - len(refined))  # older: fewer
+        (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
+         self.n_refine_skipped) = refined
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)

@@ -185,7 +185,8 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["peak_rss_mb"] = peak_rss_mb()
     summary["skipped_empty_scans"] = result.skipped_empty
     summary["skipped_small_scans"] = result.skipped_small
-    summary["odometry_refined_scans"], summary["odometry_refine_refused"] = result.refined_scans
+    (summary["odometry_refined_scans"], summary["odometry_refine_refused"],
+     summary["odometry_refine_unproven"], summary["odometry_refine_skipped"]) = result.refined_scans
     summary.update(extra or {})
     for key, entry in result.inertial_summary.items():  # the back-end's use of the IMU / GNSS
         summary[key] = {**(summary.get(key) or {}), **entry}
