@@ -87,6 +87,18 @@ class OdometryConfig(_Section):
     refine_max_correspondence_m: Positive = 1.0
     refine_max_correction_m: Positive = 0.5
     refine_max_correction_deg: Positive = 2.0
+    # Failure (lidar_slam.frontend.failure): failure_scans registered scans in a row with under
+    # failure_min_fitness of their points within failure_inlier_m of the last keyframes' clouds
+    # (failure_wide_min_fitness while kiss-icp's adaptive threshold is above failure_sigma_m)
+    # reset its local map to those keyframes and its threshold to initial_threshold_m; counted
+    # in summary.json (odometry_failures). 0: off. Good runs stay above both bars (>= 0.47);
+    # 5 m: a car's threshold (KITTI, sims) stays under 2 m; a hand-held walk without IMU went
+    # to 15 m, whose kernel let mediocre fits smear the map and made kiss-icp crawl.
+    failure_min_fitness: Fraction = 0.2
+    failure_sigma_m: NonNegative = 5.0
+    failure_wide_min_fitness: Fraction = 0.5
+    failure_inlier_m: Positive = 0.3
+    failure_scans: Count = 2
 
 
 class KeyframeConfig(_Section):

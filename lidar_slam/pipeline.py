@@ -52,6 +52,10 @@ class RunResult:
     backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
     # slow scans refined against the last keyframes, and refinements refused (see odometry)
     refined_scans: tuple[int, int] = (0, 0)
+    # odometry failures (lidar_slam.frontend.failure): scan indices of every local-map reset
+    # and of the first reset of each episode
+    failure_resets: list[int] = field(default_factory=list)
+    failure_episodes: list[int] = field(default_factory=list)
     # With IMU / GNSS in the final solve (lidar_slam.backend.inertial), both taking the frame of
     # the output poses (poses_kitti.txt: frame 0 at its stamp is the identity): where it lies
     # on the Earth (GNSS; lidar_slam.geo.GeoReference), and the rotation from it to a
@@ -195,6 +199,12 @@ class Pipeline:
         includes them (lidar_slam.backend.inertial), with or without loops."""
         r = self.result
         r.refined_scans = (self.odometry.n_refined, self.odometry.n_refine_refused)
+        r.failure_resets = list(self.odometry.failures.resets)
+        r.failure_episodes = list(self.odometry.failures.episodes)
+        if r.failure_resets:
+            log.warning("odometry failed %d time(s) (episodes from scans %s): %d local-map "
+                        "resets (summary.json odometry_failures)", len(r.failure_episodes),
+                        r.failure_episodes, len(r.failure_resets))
         if self.adaptive is None:  # no scan at all
             self.start(adapt.auto_values(self.cfg, None))
         use_inertial = inertial is not None and (inertial.imu is not None
