@@ -411,6 +411,7 @@ def test_two_runs_write_identical_files(tmp_path):
     assert_same_run_folders(tmp_path / "a", tmp_path / "b")
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["loops_accepted"] >= 3
+    assert summary["odometry_failures"] == 0 and summary["odometry_failure_frames"] == []
     # The back-end's share of the run, and its verdict on every accepted loop (all true here).
     assert 0 < summary["backend_s"] < summary["wall_s"] and 0 < summary["backend_share_pct"] < 100
     assert summary["loops_backend_rejected"] == 0

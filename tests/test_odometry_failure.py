@@ -67,3 +67,27 @@ def test_scans_from_another_street_are_one_reported_failure_and_a_map_reset(stre
     # bounded: the map is cut back to the last keyframes and this scan, the threshold restarts
     assert sizes[at] < 0.7 * sizes[at - 1]
     assert sigmas[at] == cfg.initial_threshold_m
+
+
+def test_a_resumed_odometry_keeps_its_failures_and_its_restarted_threshold(streets):
+    """The restart is in the deviations a checkpoint replays (lidar_slam.run.checkpoint)."""
+    from lidar_slam.frontend.odometry import Odometry
+
+    a, b = (list(open_source(s).scans(0, N)) for s in streets)
+    cfg = SlamConfig()
+    pipe = pipeline.Pipeline(cfg.model_copy(update={"loop": cfg.loop.model_copy(
+        update={"enabled": False})}), None)
+    try:
+        for scan in a[:SPLICE] + b[SPLICE:SPLICE + 6]:
+            pipe.process(scan)
+        odo = pipe.odometry
+        assert odo.failures.resets
+        resumed = Odometry(pipe.cfg)
+        resumed.restore(odo.state(), odo.take_deviations())
+    finally:
+        pipe.close()
+    sigma = odo._threshold._compute_threshold()
+    assert resumed._threshold._compute_threshold() == sigma
+    assert resumed.failures.resets == odo.failures.resets
+    assert resumed.failures.episodes == odo.failures.episodes
+    assert resumed.failures.kernel(sigma, 2.0) == odo.failures.kernel(sigma, 2.0)
