@@ -59,7 +59,13 @@ class OdometryConfig(_Section):
     min_motion_m: NonNegative = 0.1
     max_num_iterations: Count = 500
     convergence_criterion: Positive = 1e-4
-    max_num_threads: NonNegativeInt = 0
+    # kiss-icp's TBB threads (0: every core). One by default: with more, its correspondence
+    # search and normal-equation sums run in a varying order, so two runs of the same input
+    # differ (a hand-held walk: 1.9 cm at the end; sim 07: 4e-13 m, then the loop verification
+    # and the final solve carry it further). kiss-icp sets TBB's process-wide limit from the
+    # first registration made in a process, which also bounds gtsam's TBB: the first Odometry
+    # of a process decides for all. Cost: docs/design.md (Determinism).
+    max_num_threads: NonNegativeInt = 1
     # Slow scans are refined after kiss-icp: a scan whose last motion is under refine_below_mps
     # (m/s) is registered again, from kiss-icp's pose, by point-to-plane ICP against the clouds
     # of the last refine_keyframes keyframes (matches up to refine_max_correspondence_m). Its
@@ -93,6 +99,18 @@ class OdometryConfig(_Section):
     # (docs/benchmarks/2026-12-03-refine-proof.md).
     refine_evidence: bool = False
     refine_evidence_z: Positive = 2.0
+    # Failure (lidar_slam.frontend.failure): failure_scans registered scans in a row with under
+    # failure_min_fitness of their points within failure_inlier_m of the last keyframes' clouds
+    # (failure_wide_min_fitness while kiss-icp's adaptive threshold is above failure_sigma_m)
+    # reset its local map to those keyframes and its threshold to initial_threshold_m; counted
+    # in summary.json (odometry_failures). 0: off. Good runs stay above both bars (>= 0.47);
+    # 5 m: a car's threshold (KITTI, sims) stays under 2 m; a hand-held walk without IMU went
+    # to 15 m, whose kernel let mediocre fits smear the map and made kiss-icp crawl.
+    failure_min_fitness: Fraction = 0.2
+    failure_sigma_m: NonNegative = 5.0
+    failure_wide_min_fitness: Fraction = 0.5
+    failure_inlier_m: Positive = 0.3
+    failure_scans: Count = 2
 
 
 class KeyframeConfig(_Section):

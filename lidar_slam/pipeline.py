@@ -60,6 +60,10 @@ class RunResult:
     # slow scans refined against the last keyframes; refinements refused by the correction
     # gate, by the held-out points' evidence after the ICP, and before it (see odometry)
     refined_scans: tuple[int, int, int, int] = (0, 0, 0, 0)
+    # odometry failures (lidar_slam.frontend.failure): scan indices of every local-map reset
+    # and of the first reset of each episode
+    failure_resets: list[int] = field(default_factory=list)
+    failure_episodes: list[int] = field(default_factory=list)
     # With IMU / GNSS in the final solve (lidar_slam.backend.inertial), both taking the frame of
     # the output poses (poses_kitti.txt: frame 0 at its stamp is the identity): where it lies
     # on the Earth (GNSS; lidar_slam.geo.GeoReference), and the rotation from it to a
@@ -246,6 +250,12 @@ class Pipeline:
         o = self.odometry
         r.refined_scans = (o.n_refined, o.n_refine_refused, o.n_refine_unproven,
                            o.n_refine_skipped)
+        r.failure_resets = list(self.odometry.failures.resets)
+        r.failure_episodes = list(self.odometry.failures.episodes)
+        if r.failure_resets:
+            log.warning("odometry failed %d time(s) (episodes from scans %s): %d local-map "
+                        "resets (summary.json odometry_failures)", len(r.failure_episodes),
+                        r.failure_episodes, len(r.failure_resets))
         if self.adaptive is None:  # no scan at all
             self.start(adapt.auto_values(self.cfg, None))
         use_inertial = inertial is not None and (inertial.imu is not None

@@ -365,20 +365,53 @@ def test_out_folder_rule(tmp_path):
                                      "--resume"), "cannot resume", "config")
 
 
-def test_two_runs_write_identical_poses(tmp_path):
-    """Loop detection runs in a worker process; its results are applied at fixed keyframes, so
-    runs do not depend on timing (sample_scans: loops accepted). kiss-icp's two-thread
-    reductions (TBB) change the odometry's last bits from run to run, which the final solve can
-    carry into a printed digit; with one odometry thread every byte is reproducible."""
-    cfg = tmp_path / "one_thread.yaml"
-    cfg.write_text("odometry:\n  max_num_threads: 1\n")
+# summary.json fields that measure the machine, not the input: wall-clock and CPU seconds, rates,
+# shares of the wall time and peak memory (the loop worker's and the final solves' durations).
+# Every other field, and every other file of a run folder, repeats byte for byte.
+TIMING_FIELDS = ("wall_s", "fps", "odometry_ms_per_frame", "loops_ms_per_frame",
+                 "loop_worker_ms_per_frame", "loop_wait_ms_per_frame", "loop_wait_final_s",
+                 "loop_worker_urgent_s", "backend_ms_per_loop_max", "backend_s",
+                 "backend_final_s", "backend_share_pct", "peak_rss_mb",
+                 "inertial_solve.seconds")
+
+
+def without_timing(summary: dict) -> dict:
+    """summary.json without TIMING_FIELDS (dotted: a field of a section)."""
+    out = json.loads(json.dumps(summary))
+    for name in TIMING_FIELDS:
+        *sections, key = name.split(".")
+        d = out
+        for s in sections:
+            d = d.get(s, {})
+        d.pop(key, None)
+    return out
+
+
+def assert_same_run_folders(a: Path, b: Path) -> None:
+    """Every file of run folders a and b byte for byte (summary.json without TIMING_FIELDS)."""
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for name in ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "covariances.csv",
+                 "loops.csv", "map.ply", "summary.json"):
+        assert Path(name) in files, name
+    for f in files:
+        if f != Path("summary.json"):
+            assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
+    assert without_timing(sa) == without_timing(sb)
+
+
+def test_two_runs_write_identical_files(tmp_path):
+    """The default config: two runs of the same input write the same bytes. Loop detection runs
+    in a worker process; its results are applied at fixed keyframes, so runs do not depend on
+    timing (sample_scans: loops accepted); kiss-icp runs on one thread (its TBB reductions sum in
+    a varying order: odometry.max_num_threads)."""
     for name in ("a", "b"):
-        assert lidar_slam("run", SAMPLE, "--out", tmp_path / name, "--config",
-                          cfg).returncode == 0
-    a, b = ((tmp_path / n / "poses_kitti.txt").read_bytes() for n in "ab")
-    assert a == b
+        assert lidar_slam("run", SAMPLE, "--out", tmp_path / name).returncode == 0
+    assert_same_run_folders(tmp_path / "a", tmp_path / "b")
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["loops_accepted"] >= 3
+    assert summary["odometry_failures"] == 0 and summary["odometry_failure_frames"] == []
     # The back-end's share of the run, and its verdict on every accepted loop (all true here).
     assert 0 < summary["backend_s"] < summary["wall_s"] and 0 < summary["backend_share_pct"] < 100
     assert summary["loops_backend_rejected"] == 0
@@ -386,6 +419,25 @@ def test_two_runs_write_identical_poses(tmp_path):
     assert rows[0][-1] == "backend"
     assert [r[-1] for r in rows[1:] if r[6] == "1"] == ["inlier"] * summary["loops_accepted"]
     assert all(r[-1] == "" for r in rows[1:] if r[6] == "0")
+
+
+def test_two_runs_with_an_imu_write_identical_files(tmp_path):
+    """With an IMU (front-end smoother and the final inertial solve, gtsam) too."""
+    import dataclasses
+
+    from lidar_slam.sim import SENSORS
+    from lidar_slam.sim.handheld import simulate_handheld
+    from lidar_slam.sim.inertial import ImuOptions
+
+    walk = tmp_path / "walk"
+    simulate_handheld(walk, "outdoor", 3, 2.5, dataclasses.replace(SENSORS["os1-64"],
+                                                                   n_azimuth=512),
+                      imu=ImuOptions(), gnss=None)
+    for name in ("a", "b"):
+        assert lidar_slam("run", walk, "--out", tmp_path / name).returncode == 0
+    assert_same_run_folders(tmp_path / "a", tmp_path / "b")
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["imu"]["used"] and summary["imu_frontend"]["scans_deskewed_by_imu"] > 10
 
 
 def test_resume_after_sigkill_matches_an_uninterrupted_run(tmp_path):

@@ -21,6 +21,7 @@ from kiss_icp.pybind import kiss_icp_pybind as kp
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.crop import range_mask
 from lidar_slam.frontend.deskew import DeskewedScan
+from lidar_slam.frontend.failure import FailureWatch
 from lidar_slam.geometry import (
     interpolate,
     matrix_from_rotvec,
@@ -197,6 +198,11 @@ class Odometry:
         self.n_refine_unproven = 0  # by the held-out points' evidence, after the ICP
         self.n_refine_skipped = 0  # by the held-out points' evidence, before the ICP
         self.last_evidence: PlaneEvidence | None = None  # of the last refinement looked at
+        self.n_refine_refused = 0
+        self.failures = FailureWatch(o.failure_sigma_m, o.failure_min_fitness,
+                                     o.failure_wide_min_fitness, o.failure_inlier_m,
+                                     o.failure_scans, cfg.keyframes.cloud_voxel_m)
+        self._scan_index = 0  # of the scan in hand (for the failure report)
 
     def add_anchor(self, T_world_kf: np.ndarray, points_kf: np.ndarray) -> None:
         """A new keyframe for the refinement target: its odometry pose and its cloud (N, 3) in
@@ -276,16 +282,20 @@ class Odometry:
             return None  # too few to register: no state change, the caller predicts
         source = kp._voxel_down_sample(frame_down, self.voxel_size_m * 1.5)
         sigma = self._threshold._compute_threshold()
+        kernel = self.failures.kernel(sigma, self.cfg.odometry.initial_threshold_m)
         if initial_guess is None:
             initial_guess = self.last_pose @ self.last_delta
         new_pose = self._registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
-            max_correspondance_distance=3 * sigma, kernel=sigma)
+            max_correspondance_distance=3 * kernel, kernel=kernel)
         if refine and self._anchors:
             new_pose = self._refine(frame_down, new_pose)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
+        if self.failures.failed(self._scan_index, sigma, np.asarray(frame_down), new_pose,
+                                self._anchors):
+            self._reset_local_map()
         self._map._update(frame_down, new_pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ new_pose
         self.last_pose = new_pose
@@ -295,6 +305,7 @@ class Odometry:
              ) -> OdometryResult:
         """Register a deskewed scan and return its pose at the stamp. initial_guess: the IMU's
         prediction of the pose at the scan's reference instant (else constant velocity)."""
+        self._scan_index = scan.scan.index
         T_world_ref = self.register(scan.points, scan.selected, self.is_slow(scan.period_s),
                                     initial_guess)
         if T_world_ref is None:
@@ -316,6 +327,16 @@ class Odometry:
             first = interpolate(np.eye(4), self.last_delta, -self._first_ref_s / scan.period_s)
         self._last_ref_s = scan.ref_s
         return OdometryResult(T_world_ref @ T_ref_stamp, T_world_ref, T_ref_stamp, True, first)
+
+    def _reset_local_map(self) -> None:
+        """After a failure: kiss-icp's map down to the last keyframes' clouds (the scan in hand
+        is added next) and its threshold from its initial value (a NaN deviation marks the
+        restart for a resumed run's replay)."""
+        self._map._clear()
+        for T_world_kf, points_kf in self._anchors:
+            self._map._update(_vec(np.asarray(points_kf, np.float64)), T_world_kf)
+        self._new_threshold()
+        self._deviations.append(np.full((4, 4), np.nan))
 
     def is_slow(self, period_s: float) -> bool:
         """Whether the last motion is slower than odometry.refine_below_mps (0: never)."""
@@ -344,7 +365,8 @@ class Odometry:
                 "map_points": np.asarray(self._map._point_cloud()),
                 "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
                                       self.n_refined, self.n_refine_refused,
-                                      self.n_refine_unproven, self.n_refine_skipped])}
+                                      self.n_refine_unproven, self.n_refine_skipped]),
+                **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
         """Continue from state(): the map's points go back into their voxels, the adaptive
@@ -356,7 +378,11 @@ class Odometry:
             self._map._add_points(_vec(np.asarray(state["map_points"], np.float64)))
         self._new_threshold()
         for dev in deviations:
-            self._threshold._update_model_deviation(model_deviation=dev)
+            if np.isnan(dev).any():  # a failure's restart (_reset_local_map)
+                self._new_threshold()
+            else:
+                self._threshold._update_model_deviation(model_deviation=dev)
+        self.failures.restore(state)
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)

@@ -187,6 +187,11 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["skipped_small_scans"] = result.skipped_small
     (summary["odometry_refined_scans"], summary["odometry_refine_refused"],
      summary["odometry_refine_unproven"], summary["odometry_refine_skipped"]) = result.refined_scans
+    # episodes of failed odometry (lidar_slam.frontend.failure), the scans they started at, and
+    # the scans of every local-map reset
+    summary["odometry_failures"] = len(result.failure_episodes)
+    summary["odometry_failure_frames"] = result.failure_episodes
+    summary["odometry_failure_resets"] = result.failure_resets
     summary.update(extra or {})
     for key, entry in result.inertial_summary.items():  # the back-end's use of the IMU / GNSS
         summary[key] = {**(summary.get(key) or {}), **entry}
