@@ -2,7 +2,7 @@
 
 The robot walks the loop's straight legs (LoopPath.waypoints) at 1.2-1.5 m/s, stopping at each
 corner to turn on the spot (70-100 deg/s), and now and then in the middle of a leg; it starts and
-stops abruptly (0.3-0.5 s from standing to walking speed). While its legs move (walking or
+stops abruptly (0.35-0.5 s from standing to walking speed). While its legs move (walking or
 turning) the trot shakes the body: a 2-3 Hz vertical bounce of 1.5-2.5 cm, a roll at half the
 step rate and a pitch at the step rate of 1.5-3 deg, with a stride-to-stride jitter. Sampled at
 KEY_RATE_HZ and splined by inertial.SmoothTrajectory, the truth for the points and the IMU alike.
@@ -21,7 +21,7 @@ from lidar_slam.sim.handheld import KEY_RATE_HZ, LoopPath, MotionStats, _smooths
 from lidar_slam.sim.inertial import SmoothTrajectory
 
 MAX_RATE_DPS = 120.0
-MAX_ACCEL_MPS2 = 12.0  # kinematic: |d2p/dt2|, gravity not included
+MAX_ACCEL_MPS2 = 15.0  # kinematic: |d2p/dt2|, gravity not included
 BODY_HEIGHT_M = 0.55  # the lidar above the floor (on a ~0.5 m body)
 
 
@@ -42,7 +42,7 @@ class Trot:
 
     @staticmethod
     def draw(rng: np.random.Generator) -> Trot:
-        return Trot(float(rng.uniform(1.2, 1.5)), float(rng.uniform(0.3, 0.5)),
+        return Trot(float(rng.uniform(1.2, 1.5)), float(rng.uniform(0.35, 0.5)),
                     float(rng.uniform(70.0, 100.0)), float(rng.uniform(2.0, 3.0)),
                     float(rng.uniform(0.015, 0.025)), float(np.radians(rng.uniform(1.5, 3.0))),
                     float(np.radians(rng.uniform(1.5, 3.0))), 0.3)
