@@ -22,7 +22,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.io.atomic import write_text_atomic
-from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
+from lidar_slam.sim.inertial import SmoothTrajectory
 from lidar_slam.sim.sensor import SensorModel
 from lidar_slam.sim.world import World, WorldParams, build_world
 
@@ -394,16 +394,3 @@ def clearance_m(world: World, traj: SmoothTrajectory, t0_s: float, t1_s: float,
     """Distance (m) from the sensor to the nearest surface every step_s over [t0_s, t1_s]."""
     t = np.arange(t0_s, t1_s + step_s / 2, step_s)
     return world.closest(traj(t)[:, :3, 3])[0]
-
-
-def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_s: float,
-                      sensor: str | SensorModel = "os1-64", imu: ImuOptions | None = None,
-                      gnss: GnssOptions | None = None,
-                      on_scan: Callable[[int], None] | None = None):
-    """A handheld walk of duration_s (s) through a seeded world, written as a KITTI-layout
-    sequence with imu.csv / gnss.csv from the same trajectory (motions.simulate_motion).
-    Returns (SimSummary, MotionStats)."""
-    from lidar_slam.sim.motions import simulate_motion
-
-    return simulate_motion(out_dir, "handheld", world_kind, seed, duration_s, sensor, imu, gnss,
-                           on_scan)

@@ -136,3 +136,13 @@ def simulate_motion(out_dir: str | Path, motion: str, world_kind: str, seed: int
         write_bursts(Path(out_dir) / "bursts.csv", m.bursts)
     log.info("%s %s seed %d: %s", motion, world_kind, seed, m.stats)
     return summary, m.stats
+
+
+def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_s: float,
+                      sensor: str | SensorModel = "os1-64", imu: ImuOptions | None = None,
+                      gnss: GnssOptions | None = None,
+                      on_scan: Callable[[int], None] | None = None
+                      ) -> tuple[object, MotionStats]:
+    """simulate_motion of a handheld walk."""
+    return simulate_motion(out_dir, "handheld", world_kind, seed, duration_s, sensor, imu, gnss,
+                           on_scan)
