@@ -23,7 +23,8 @@ rest where the motion starts at rest).
 
 Columns: ATE (RMSE after rigid alignment, m) and worst frame (max, m); for lidar-slam the
 odometry-only ATE (odometry_kitti.txt, before loops) and final / odometry; loop stage precision
-(accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted) and the mean
+(accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted), the loops the
+final solve kept (loops.csv's backend column) and the same precision over those; the mean
 NEES of keyframe positions (covariances.csv against the truth; 3 when consistent); frames/s,
 wall time (s) and peak RSS (MB) of the whole process.
 """
@@ -226,6 +227,19 @@ def position_nees(poses: np.ndarray, gt: np.ndarray, covariances: dict[int, np.n
     return np.asarray(out)
 
 
+def backend_kept(loops_csv: Path) -> np.ndarray | None:
+    """Per accepted loop of a lidar-slam loops.csv (file order), whether the final solve kept
+    it (its `backend` column is not "rejected"); None without that column."""
+    import csv
+
+    with loops_csv.open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh)
+                if r["accepted"].strip().lower() in ("1", "true", "yes", "y")]
+    if rows and "backend" not in rows[0]:
+        return None
+    return np.array([r["backend"].strip() != "rejected" for r in rows], dtype=bool)
+
+
 def lidar_slam_extras(seq: benchmark.Sequence, out: Path) -> dict:
     """Odometry-only ATE, final / odometry, loop precision at LOOP_TRANS_M / LOOP_ROT_DEG and
     the keyframes' position NEES of one lidar-slam run folder."""
@@ -246,11 +260,16 @@ def lidar_slam_extras(seq: benchmark.Sequence, out: Path) -> dict:
     if loops.is_file() and seq.gt is not None:
         pairs, T = benchmark.lidar_slam_loops(loops, seq.start, seq.n)
         res["loops_accepted"] = len(pairs)
+        kept = backend_kept(loops)
+        if kept is not None and len(kept) == len(pairs):
+            res["loops_kept"] = int(kept.sum())
         if len(pairs) and T is not None:
             s = metrics.loop_precision_recall(pairs, T, seq.gt, max_trans_err_m=LOOP_TRANS_M,
                                               max_rot_err_deg=LOOP_ROT_DEG, max_dist_m=3.0)
             res.update(loops_precise=s.n_correct, loop_precision=s.precision,
                        loop_recall_events=s.recall_events)
+            if "loops_kept" in res and kept.any():
+                res["loop_precision_kept"] = float(s.correct[kept].mean())
     cov = out / "covariances.csv"
     if cov.is_file() and seq.gt is not None and len(final) == len(seq.gt):
         nees = position_nees(final, seq.gt, read_covariances(cov))
@@ -333,6 +352,8 @@ COLUMNS = (("ate_m", "ATE m", 3, "high", False), ("worst_frame_m", "worst frame 
            ("loops_accepted", "loops", 0, None, True),
            ("loop_precision", f"loop precision ({LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg)", 2,
             "low", True),
+           ("loops_kept", "loops kept", 0, None, True),
+           ("loop_precision_kept", "precision of kept", 2, "low", True),
            ("nees_mean", "NEES (3)", 1, "nees", True),
            ("fps", "frames/s", 1, "low", False), ("wall_s", "wall s", 1, "high", False),
            ("peak_mb", "peak MB", 0, "high", False))
