@@ -151,3 +151,24 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     assert "| **median** |" in md and "| **worst** |" in md
     assert len(read_kitti_poses(tmp_path / "bank" / "runs" / spec.name / "lidar-slam"
                                 / "poses_kitti.txt")) == 12
+
+
+def test_lidar_slam_config_prefers_the_overlay_simulate_wrote(tmp_path):
+    import yaml
+
+    b = bank()
+    spec = next(r for r in b.BANK if r.offset_s)
+    seq = tmp_path / spec.name
+    seq.mkdir()
+    with pytest.raises(FileNotFoundError, match="clock offset"):
+        b.lidar_slam_config(spec, seq, tmp_path / "cfg.yaml")
+    overlay = seq.with_name(spec.name + ".yaml")
+    overlay.write_text(yaml.safe_dump({"imu": {"time_offset_s": -spec.offset_s}}))
+    assert b.lidar_slam_config(spec, seq, tmp_path / "cfg.yaml") == overlay
+    plain = next(r for r in b.BANK if not r.offset_s and r.extrinsic[5] == 90.0)
+    path = b.lidar_slam_config(plain, tmp_path / "none", tmp_path / "cfg.yaml")
+    from lidar_slam.config import load_config
+
+    T = load_config(path).imu.T_lidar_imu_matrix()
+    np.testing.assert_allclose(T[:3, 0], [0.0, 1.0, 0.0], atol=1e-12)  # yawed 90 deg
+    np.testing.assert_allclose(T[:3, 3], plain.extrinsic[:3])

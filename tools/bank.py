@@ -289,11 +289,13 @@ def ate_cells(row: benchmark.Row) -> dict:
 
 def lidar_slam_config(spec: Spec, seq_path: Path, dest: Path) -> Path:
     """The lidar-slam configuration overlay for spec: the one simulate wrote beside the
-    sequence (a *.yaml with an imu section: it knows its own offset's sign), else dest with
-    imu.T_lidar_imu from the spec (no clock offset: simulate had none to write)."""
+    sequence (a *.yaml with an imu section in the sequence folder or <folder>.yaml next to it:
+    it knows its own offset's sign), else dest with imu.T_lidar_imu from the spec (no clock
+    offset: simulate had none to write)."""
     import yaml
 
-    for path in sorted(seq_path.glob("*.yaml")):
+    sibling = seq_path.with_name(seq_path.name + ".yaml")
+    for path in sorted(seq_path.glob("*.yaml")) + ([sibling] if sibling.is_file() else []):
         if "imu" in (yaml.safe_load(path.read_text()) or {}):
             return path
     if spec.offset_s:
