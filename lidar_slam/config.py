@@ -158,9 +158,31 @@ class VerifyConfig(_Section):
     info_min_rot_sigma_deg: Positive = 0.2
 
 
+class OdometryInformationConfig(_Section):
+    """How sure each keyframe-to-keyframe odometry edge is, from its own data
+    (lidar_slam.frontend.edge_information: the point-to-plane Hessian of the keyframe's cloud on
+    the previous one, over the measured residual)."""
+
+    # Off: every edge gets backend.odom_rot_sigma_deg / odom_trans_sigma_m.
+    enabled: bool = True
+    # One residual per cell of this size (m): neighbouring residuals on one surface are not
+    # independent.
+    cell_m: Positive = 2.0
+    max_correspondence_m: Positive = 1.0
+    # The residual's RMS is taken as at least this (m): sensor noise and the clouds' 0.5 m voxel
+    # centroids leave more than this on any real surface.
+    min_residual_m: Positive = 0.01
+    # Floors: no direction more certain than these 1-sigmas (the matrix scaled down uniformly).
+    min_trans_sigma_m: Positive = 0.005
+    min_rot_sigma_deg: Positive = 0.1
+
+
 class BackendConfig(_Section):
+    # Odometry edges whose own information cannot be had (an empty keyframe, odom_information
+    # off), 1-sigma per keyframe edge.
     odom_rot_sigma_deg: Positive = 0.1
     odom_trans_sigma_m: Positive = 0.05
+    odom_information: OdometryInformationConfig = OdometryInformationConfig()
     prior_rot_sigma_deg: Positive = 1e-3
     prior_trans_sigma_m: Positive = 1e-3
     huber_k: Positive = 1.345
@@ -200,6 +222,17 @@ class LoopConfig(_Section):
     # while 97-100 % of the wrong candidates were further (docs/design.md, "Loop thresholds").
     max_gap_m: NonNegative = 20.0
     max_drift: NonNegative = 0.1
+    # A verified loop is kept only when the correction it implies (its pose against the
+    # odometry's) is one the odometry can have drifted: Mahalanobis distance under the
+    # covariance accumulated along the odometry edges since the match keyframe (each edge's own
+    # information, lidar_slam.frontend.edge_information) plus the loop's own, against the
+    # chi-square(6) quantile of this tail probability (1e-6: 38.3). 0 turns the gate off.
+    drift_gate_p: Fraction = 1e-6
+    # With an IMU, a loop is also refused when the up direction it implies for the query
+    # keyframe (the match's, as the IMU saw it, turned by the loop) is further than this from
+    # the one the IMU saw at the query: gravity fixes roll and pitch whatever the drift. True
+    # loops of the bank: at most 1.8 deg (hand-held office), 1.3 (drone in a warehouse). 0: off.
+    max_tilt_disagreement_deg: NonNegative = 3.0
     # Detection runs in a worker process (or thread; "inline": in the main flow, for
     # debugging); the result of keyframe k is applied to the graph when keyframe
     # k + collect_lag_keyframes is made (or at the end), whatever the worker's speed, so runs

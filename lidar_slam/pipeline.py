@@ -7,6 +7,7 @@ With an IMU, deskew follows the integrated IMU and odometry starts from its pred
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable
@@ -17,6 +18,7 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
+from lidar_slam.frontend.edge_information import EdgeInformation
 from lidar_slam.frontend.keyframes import KeyframeSelector
 from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geo import GeoReference
@@ -40,6 +42,11 @@ class RunResult:
     kf_poses: dict[int, np.ndarray] = field(default_factory=dict)  # final T_world_kf
     # keyframe id -> 6x6 marginal covariance of kf_poses (rotation first, keyframe's frame)
     kf_covariances: dict[int, np.ndarray] = field(default_factory=dict)
+    # keyframe id -> information of the odometry edge from the previous keyframe (its own data:
+    # lidar_slam.frontend.edge_information), where it could be had
+    odom_information: dict[int, np.ndarray] = field(default_factory=dict)
+    # keyframe id -> unit vector against gravity in the keyframe's frame (the IMU's), with an IMU
+    kf_up: dict[int, np.ndarray] = field(default_factory=dict)
     loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
     skipped_empty: int = 0
     skipped_small: int = 0  # scans with fewer than data.min_points points in range
@@ -84,6 +91,9 @@ class Pipeline:
 
             self.inertial = ImuFrontend(imu, cfg.imu)
         self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
+        self.edge_information = (EdgeInformation(cfg.backend.odom_information,
+                                                 cfg.keyframes.cloud_voxel_m)
+                                 if cfg.backend.odom_information.enabled else None)
         # Without a run folder (library use), keyframes go to a temporary folder; resume reopens
         # the run folder's store (lidar_slam.run.checkpoint cuts it back to it).
         self.result = RunResult(KeyframeStore(None if run_dir is None
@@ -164,23 +174,61 @@ class Pipeline:
                                    deskewed.scan.stamp_s)
         if len(kf.points):
             self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
+        info = self.weigh_keyframe(kf.id, kf.T_world_kf_odom, kf.points)
+        up = self.inertial.up_in_lidar() if self.inertial is not None else None
+        if up is not None and odom.registered:
+            self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up
         if self.backend is not None:
             t0 = time.perf_counter()
-            self.backend.add_keyframe(kf.id, kf.T_world_kf_odom)
+            self.backend.add_keyframe(kf.id, kf.T_world_kf_odom, info)
             self.loops.submit(kf.id)
             self._apply_loops(kf.id - c.loop.collect_lag_keyframes)
             self.loops.pace(None if self.frames_total is None
                             else self.frames_total - len(self.result.indices) - 1)
             self.result.seconds["loops"] += time.perf_counter() - t0
 
+    def weigh_keyframe(self, kf_id: int, T_world_kf: np.ndarray, points: np.ndarray
+                       ) -> np.ndarray | None:
+        """The information of the odometry edge into keyframe kf_id (kept in the result), or
+        None (the configured sigmas); keyframes in order, as stored (a resumed run replays
+        them)."""
+        if self.edge_information is None:
+            return None
+        info = self.edge_information.add(T_world_kf, points)
+        if info is not None:
+            self.result.odom_information[kf_id] = info
+        return info
+
     def _apply_loops(self, upto: int) -> None:
         """Collect the loop results of keyframes <= upto (in order) and update the back-end."""
         for res in self.loops.collect(upto):
+            res = self._check_tilt(res)
             self.result.loops.extend(res.records)
             if res.constraint is not None:
                 self.backend.add_loop(res.constraint)
             self.loops_applied_upto = res.kf_id
         self.backend.update(force=False)
+
+    def _check_tilt(self, res):
+        """res (a LoopResult) without its constraint when the IMU says the loop tilts the query
+        keyframe (loop.max_tilt_disagreement_deg): the up direction seen at the match, carried
+        by the loop into the query's frame, against the one seen at the query."""
+        c, limit = res.constraint, self.cfg.loop.max_tilt_disagreement_deg
+        if c is None or not limit:
+            return res
+        up_m, up_q = self.result.kf_up.get(c.match), self.result.kf_up.get(c.query)
+        if up_m is None or up_q is None:
+            return res
+        cos = float(np.clip((c.T_match_query[:3, :3].T @ up_m) @ up_q, -1.0, 1.0))
+        tilt = float(np.degrees(np.arccos(cos)))
+        if tilt <= limit:
+            return res
+        log.info("loop %d -> %d refused: it tilts the query %.1f deg from the IMU's gravity",
+                 c.query, c.match, tilt)
+        records = tuple(dataclasses.replace(r, accepted=False, reason=f"gravity: tilt "
+                                            f"{tilt:.1f} deg > {limit:.1f}") if r.accepted
+                        else r for r in res.records)
+        return dataclasses.replace(res, records=records, constraint=None)
 
     def current_kf_poses(self) -> dict[int, np.ndarray]:
         """Best current T_world_kf of every keyframe (live estimate, or odometry)."""
@@ -213,7 +261,8 @@ class Pipeline:
                 finally:
                     self.loops.close()
             for kf_id in range(len(self.backend), len(r.store)):  # stopped mid-keyframe
-                self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
+                self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
+                                          r.odom_information.get(kf_id))
             r.kf_poses = self.backend.finish()
             r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s
@@ -233,7 +282,8 @@ class Pipeline:
             from lidar_slam.backend.slam_backend import chain_covariances
 
             r.kf_poses = self.current_kf_poses()
-            r.kf_covariances = chain_covariances(self.cfg.backend, r.kf_poses)
+            r.kf_covariances = chain_covariances(self.cfg.backend, r.kf_poses,
+                                                 r.odom_information)
         return r
 
     def _solve_inertial(self, inertial) -> None:
@@ -251,7 +301,7 @@ class Pipeline:
                                   np.asarray(table["T"], dtype=float), at_stamp,
                                   np.asarray(r.stamps_s), odom)
         out = solver.solve(self.cfg, r.kf_poses, self.backend.final_edges(), tr, inertial.imu,
-                           inertial.gnss)
+                           inertial.gnss, r.odom_information)
         self.backend.seconds["inertial"] = time.perf_counter() - t0
         if out is None:
             return

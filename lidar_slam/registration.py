@@ -191,3 +191,35 @@ def level_ground(points: np.ndarray, max_tilt_deg: float = 30.0, max_range_m: fl
     if height < min_height_m:
         return identity
     return GroundLevel(_rotation_between(n, np.array([0.0, 0.0, 1.0])), height)
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """A point-to-plane alignment's evidence at a given pose: hessian (6x6) = sum J^T J with
+    J = [(p x n)^T, n^T] (rotation first, a perturbation on the right in the source frame,
+    T_true = T exp(xi): the tangent of gtsam's BetweenFactor error), over the inliers; rms_m
+    their point-to-plane residual (m); n their count."""
+
+    hessian: np.ndarray
+    rms_m: float
+    n: int
+
+
+def plane_fit(target: PlaneTarget, source: np.ndarray, T_target_source: np.ndarray,
+              max_correspondence_m: float, min_sigma_m: float) -> PlaneFit:
+    """The point-to-plane Hessian and residual of source (N, 3) placed by T_target_source on
+    the target, without moving it. Inliers: nearest target point within max_correspondence_m
+    and a residual within 3 robust sigmas (1.4826 MAD, at least min_sigma_m) of the plane."""
+    moved = source @ T_target_source[:3, :3].T + T_target_source[:3, 3]
+    idx, sq = target.tree.batch_nearest_neighbor_search(moved, num_threads=THREADS)
+    idx, sq = np.asarray(idx, np.int64), np.asarray(sq)
+    near = (idx >= 0) & (sq <= max_correspondence_m**2)
+    if near.sum() < 6:
+        return PlaneFit(np.zeros((6, 6)), float("inf"), 0)
+    normals = target.cloud.normals()[idx[near], :3]
+    r = np.einsum("ij,ij->i", moved[near] - target.cloud.points()[idx[near], :3], normals)
+    robust = max(1.4826 * float(np.median(np.abs(r))), min_sigma_m)
+    keep = np.abs(r) <= 3.0 * robust
+    n = normals[keep] @ T_target_source[:3, :3]  # R^T n, row-wise: the source frame
+    J = np.hstack([np.cross(source[near][keep], n), n])
+    return PlaneFit(J.T @ J, float(np.sqrt(np.mean(r[keep] ** 2))), int(keep.sum()))

@@ -95,7 +95,7 @@ def test_handheld_same_seed_same_bytes(tmp_path):
                           imu=ImuOptions(), gnss=None)
         runs[name] = {p.relative_to(tmp_path / name): p.read_bytes()
                       for p in sorted((tmp_path / name).rglob("*")) if p.is_file()}
-    assert runs["a"] == runs["b"] and len(runs["a"]) == 2 * 5 + 8
+    assert runs["a"] == runs["b"] and len(runs["a"]) == 2 * 5 + 9  # with lidar_slam.yaml
     assert runs["a"][next(k for k in runs["a"] if k.name == "imu.csv")] != \
         runs["c"][next(k for k in runs["c"] if k.name == "imu.csv")]
 

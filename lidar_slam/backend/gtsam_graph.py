@@ -417,3 +417,9 @@ def certify_rotations(dims: Dims, betweens: Sequence[BetweenFactor],
     return RotationCertificate(certified, float(lambda_min), float(shonan.cost(rotations)),
                                time.perf_counter() - t0)
 
+
+def between_error(T_i_j: np.ndarray, T_w_i: np.ndarray, T_w_j: np.ndarray) -> np.ndarray:
+    """gtsam's BetweenFactorPose3 error (6, rotation first, in j's frame) of the measurement
+    T_i_j at poses T_w_i, T_w_j."""
+    return np.asarray(gtsam.Pose3(T_i_j).localCoordinates(
+        gtsam.Pose3(T_w_i).between(gtsam.Pose3(T_w_j))))

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidar_slam.backend import gnss as gnss_align
-from lidar_slam.backend import inertial_graph
+from lidar_slam.backend import gtsam_graph, inertial_graph
 from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.geo import LocalEnu
@@ -180,13 +180,60 @@ def _edges_between_imus(edges: list[BetweenFactor], Cn: dict[int, np.ndarray]
     return out
 
 
-def _inertial_odometry(cfg: SlamConfig, edges: list[BetweenFactor]) -> list[BetweenFactor]:
-    """The odometry edges with the information and kernel of a solve with the IMU (config
-    backend.inertial_odom_*, huber_k); loops as they are."""
+def _inertial_odometry(cfg: SlamConfig, edges: list[BetweenFactor],
+                       measured: dict[int, np.ndarray]) -> list[BetweenFactor]:
+    """The odometry edges with the kernel of a solve with the IMU (huber_k) and their own
+    information where it was measured (measured: keyed by the edge's second keyframe), else the
+    config's backend.inertial_odom_*; loops as they are."""
     b = cfg.backend
     info = sigmas_to_information(b.inertial_odom_rot_sigma_deg, b.inertial_odom_trans_sigma_m)
-    return [e if e.is_loop else dataclasses.replace(e, information=info, robust_k=b.huber_k)
+    return [e if e.is_loop else dataclasses.replace(e, information=measured.get(e.j, info),
+                                                    robust_k=b.huber_k)
             for e in edges]
+
+
+CHI2_3_MEDIAN = 2.366  # median of the chi-square distribution with 3 degrees of freedom
+
+
+def odometry_variance(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
+                      ) -> tuple[float, float]:
+    """Variance factors (rotation, translation; at least 1) of the odometry edges at a solution
+    with the IMU: the median over edges of each block's squared residual normalised by that
+    block of the edge's own covariance, over chi-square(3)'s median. The IMU, far surer of
+    rotation over a keyframe's fraction of a second than the gyro-free registration, shows
+    the odometry's real rotation error in its residual; an edge information from the clouds
+    alone sees the registration's noise but not the deskew or calibration errors of a shaken
+    sensor (a hand-held walk: 2.5x the predicted rotation error). Only ever loosened: where the
+    odometry dominates a direction its residual is small whatever its error."""
+    r_rot, r_trans = [], []
+    for e in edges:
+        if e.is_loop:
+            continue
+        err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
+        cov = np.linalg.inv(e.information)
+        r_rot.append(err[:3] @ np.linalg.solve(cov[:3, :3], err[:3]))
+        r_trans.append(err[3:] @ np.linalg.solve(cov[3:, 3:], err[3:]))
+    if not r_rot:
+        return 1.0, 1.0
+    return (max(1.0, float(np.mean(r_rot)) / 3.0),
+            max(1.0, float(np.mean(r_trans)) / 3.0))
+
+
+def _scaled_odometry(edges: list[BetweenFactor], factors: tuple[float, float]
+                     ) -> list[BetweenFactor]:
+    """The odometry edges with their rotation / translation covariance blocks scaled by the
+    variance factors (information D^-1 I D^-1, D = the factors' square roots); loops as they
+    are."""
+    d = 1.0 / np.sqrt(np.repeat(np.asarray(factors, dtype=float), 3))
+    out, scaled = [], {}
+    for e in edges:
+        if not e.is_loop:
+            key = id(e.information)
+            if key not in scaled:
+                scaled[key] = e.information * np.outer(d, d)
+            e = dataclasses.replace(e, information=scaled[key])
+        out.append(e)
+    return out
 
 
 def _prior_covariance(R_S_node: np.ndarray, rot_sigma: np.ndarray, trans_sigma: float
@@ -200,8 +247,8 @@ def _prior_covariance(R_S_node: np.ndarray, rot_sigma: np.ndarray, trans_sigma: 
 
 
 def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[BetweenFactor],
-          tr: RunTrajectory, imu: ImuSamples | None, fixes: GnssFixes | None
-          ) -> InertialResult | None:
+          tr: RunTrajectory, imu: ImuSamples | None, fixes: GnssFixes | None,
+          odom_information: dict[int, np.ndarray] | None = None) -> InertialResult | None:
     """The final solve with every factor (see the module docstring); None without IMU and GNSS.
     When neither can be used, the poses given, with the reasons in the summary and reports."""
     if imu is None and fixes is None:
@@ -243,7 +290,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     prior_mean = poses[keys[0]]
     prior_cov = _prior_covariance(prior_mean[:3, :3], rot_sigma, trans_sigma)
     if links:
-        edges = _inertial_odometry(cfg, edges)
+        edges = _inertial_odometry(cfg, edges, odom_information or {})
     imu_edges = _edges_between_imus(edges, Cn)
     Cn_inv = {k: inverse(T) for k, T in Cn.items()}
 
@@ -258,6 +305,14 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
 
     used = alignment.inlier.copy() if tied is not None else np.zeros(0, dtype=bool)
     sol = run(used)
+    if links:  # the odometry's own weights, checked against the IMU (see odometry_variance)
+        factors = odometry_variance(imu_edges, sol.poses)
+        summary["imu"]["odometry_variance_factor"] = [round(f, 3) for f in factors]
+        if max(factors) > 1.0:
+            imu_edges = _scaled_odometry(imu_edges, factors)
+            poses = sol.poses
+            velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
+            sol = run(used)
     d2 = residual = np.zeros(0)
     for round_ in range(GATE_ROUNDS + 1 if tied is not None else 0):
         diff = tied.enu_m - tied.antenna({k: T @ Cn_inv[k] for k, T in sol.poses.items()})

@@ -173,3 +173,4 @@ def _lu_covariances(gfg: gtsam.GaussianFactorGraph, keys: list[int]) -> dict[int
 def adjoint(T: np.ndarray) -> np.ndarray:
     """gtsam's 6x6 adjoint of T (rotation first): T Exp(xi) T^-1 = Exp(Ad(T) xi)."""
     return np.asarray(gtsam.Pose3(T).AdjointMap(), dtype=np.float64)
+

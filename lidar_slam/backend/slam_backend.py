@@ -50,6 +50,7 @@ class Backend:
         self._prior_info = sigmas_to_information(cfg.prior_rot_sigma_deg, cfg.prior_trans_sigma_m)
         self._odom_info = sigmas_to_information(cfg.odom_rot_sigma_deg, cfg.odom_trans_sigma_m)
         self._live = np.empty((0, 4, 4))  # current estimate T_world_kf by keyframe id
+        self._edge_info: list[np.ndarray] = []  # information of the odometry edge into each id
         self._n = 0
         self._loops_by_query: dict[int, list[LoopConstraint]] = {}
         self._loops_pending = 0
@@ -62,6 +63,7 @@ class Backend:
         # keyframe id -> 6x6 marginal covariance of the final solve (rotation first, rad and m,
         # in the keyframe's frame: T_world_kf_true = T_world_kf @ Exp(xi)), set by finish()
         self.covariances: dict[int, np.ndarray] = {}
+        self.variance_factor = 1.0  # the covariances' scale from the loops (_variance_factor)
 
     def __len__(self) -> int:
         return self._n
@@ -74,9 +76,12 @@ class Backend:
                 buf[:self._n] = getattr(self, name)[:self._n]
                 setattr(self, name, buf)
 
-    def add_keyframe(self, kf_id: int, T_world_kf_odom: np.ndarray) -> None:
-        """A new node, joined to the previous keyframe by its odometry (the first gets a prior);
-        its live estimate is its odometry chained onto the previous keyframe's estimate."""
+    def add_keyframe(self, kf_id: int, T_world_kf_odom: np.ndarray,
+                     information: np.ndarray | None = None) -> None:
+        """A new node, joined to the previous keyframe by its odometry (the first gets a prior)
+        with the edge's own information (6x6, rotation first; lidar_slam.frontend.
+        edge_information), else the configured sigmas; its live estimate is its odometry chained
+        onto the previous keyframe's estimate."""
         if kf_id != self._n:
             raise ValueError(f"keyframe ids must be consecutive: got {kf_id}, expected {self._n}")
         b = self.cfg
@@ -89,9 +94,10 @@ class Backend:
         else:
             T_prev_kf = relative(self._odom[kf_id - 1], T_world_kf_odom)
             self._rel[kf_id] = T_prev_kf
-            self.graph.add_odometry(kf_id - 1, kf_id, T_prev_kf, rot_sigma_deg=b.odom_rot_sigma_deg,
-                                    trans_sigma_m=b.odom_trans_sigma_m)
+            info = self._odom_info if information is None else information
+            self.graph.add_odometry(kf_id - 1, kf_id, T_prev_kf, info)
             self._live[kf_id] = self._live[kf_id - 1] @ T_prev_kf
+        self._edge_info.append(self._odom_info if kf_id == 0 else info)
         self._n += 1
 
     def add_loop(self, c: LoopConstraint) -> None:
@@ -129,7 +135,7 @@ class Backend:
         initial = {first: self._live[first]}
         for k in range(first + 1, last + 1):
             initial[k] = self._live[k]
-            edges.append(BetweenFactor(k - 1, k, self._rel[k], self._odom_info))
+            edges.append(BetweenFactor(k - 1, k, self._rel[k], self._edge_info[k]))
         for k in range(first, last + 1):
             for c in self._loops_by_query.get(k, ()):
                 if c.match not in initial:  # older than the window: held where it is
@@ -199,22 +205,54 @@ class Backend:
     def _covariances(self) -> None:
         t0 = time.perf_counter()
         self.covariances = self.graph.covariances(self.cfg.robust, self.cfg.huber_k)
+        self.variance_factor = self._variance_factor()
+        if self.variance_factor > 1.0:
+            self.covariances = {k: c * self.variance_factor for k, c in self.covariances.items()}
         self.seconds["covariances"] = time.perf_counter() - t0
 
+    def _variance_factor(self) -> float:
+        """The final solve's a posteriori variance factor, at least 1: the kept edges' summed
+        squared whitened residuals over the graph's redundancy (6 per kept loop; a chain has
+        none and says nothing). Where the loops show more drift than the edges' information
+        allows (an odometry error the clouds cannot see: deskew, calibration), the covariances
+        grow by it; the poses do not change."""
+        from lidar_slam.backend import gtsam_graph
 
-def chain_covariances(cfg: BackendConfig, T_world_kf: dict[int, np.ndarray]
-                      ) -> dict[int, np.ndarray]:
+        kept = [e for e in self.graph.edges
+                if not e.is_loop or self.loop_status.get((e.i, e.j)) == "inlier"]
+        n_loops = sum(e.is_loop for e in kept)
+        if not n_loops:
+            return 1.0
+        poses = self.graph.estimate
+        chi2 = 0.0
+        for e in kept:
+            err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
+            chi2 += float(err @ e.information @ err)
+        factor = max(1.0, chi2 / (6 * n_loops))
+        log.info("covariances: a posteriori variance factor %.2f (chi2 %.1f, %d loops)",
+                 chi2 / (6 * n_loops), chi2, n_loops)
+        return factor
+
+
+def chain_covariances(cfg: BackendConfig, T_world_kf: dict[int, np.ndarray],
+                      information: dict[int, np.ndarray] | None = None) -> dict[int, np.ndarray]:
     """Marginal covariances (as Backend.covariances) of keyframes joined by odometry alone, as
-    in a run without loops: the first keyframe's prior and one odometry edge per keyframe."""
+    in a run without loops: the first keyframe's prior and one odometry edge per keyframe, with
+    its information (keyed by the edge's second keyframe) where given, else the config's
+    sigmas."""
+    information = information or {}
     if not T_world_kf:
         return {}
     graph = PoseGraph()
     keys = sorted(T_world_kf)
     graph.add_prior(keys[0], T_world_kf[keys[0]], cfg.prior_rot_sigma_deg, cfg.prior_trans_sigma_m)
     for a, b in zip(keys[:-1], keys[1:], strict=True):
-        graph.add_odometry(a, b, relative(T_world_kf[a], T_world_kf[b]),
-                           rot_sigma_deg=cfg.odom_rot_sigma_deg,
-                           trans_sigma_m=cfg.odom_trans_sigma_m)
+        if b in information:
+            graph.add_odometry(a, b, relative(T_world_kf[a], T_world_kf[b]), information[b])
+        else:
+            graph.add_odometry(a, b, relative(T_world_kf[a], T_world_kf[b]),
+                               rot_sigma_deg=cfg.odom_rot_sigma_deg,
+                               trans_sigma_m=cfg.odom_trans_sigma_m)
     for k in keys:
         graph.set_initial(k, T_world_kf[k])
     return graph.covariances()

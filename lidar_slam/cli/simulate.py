@@ -15,6 +15,14 @@ class Sensor(str, Enum):
     hdl64 = "hdl64"
     vlp16 = "vlp16"
     os1_64 = "os1-64"
+    xt32 = "xt32"
+    os0_128 = "os0-128"
+    mid360 = "mid360"
+
+
+class Stamp(str, Enum):
+    start = "start"
+    end = "end"
 
 
 class Motion(str, Enum):
@@ -45,7 +53,11 @@ def simulate(
     times: Optional[Path] = typer.Option(None, "--times", help="Stamps (s); default: "
                                          "../times/<name>.txt beside POSES, else 10 Hz."),
     sensor: Optional[Sensor] = typer.Option(None, "--sensor", help="Lidar model to simulate "
-                                            "(default hdl64; os1-64 with --motion handheld)."),
+                                            "(default hdl64; os1-64 with --motion handheld; "
+                                            "mid360: non-repetitive, no rings)."),
+    stamp: Stamp = typer.Option(Stamp.start, "--stamp", help="The instant of each sweep that "
+                                "times.txt and poses.txt refer to: start, or end (the "
+                                "per-point times are then negative)."),
     start: int = typer.Option(0, "--start", min=0, help="First pose to simulate (0-based)."),
     n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1,
                                           help="Number of scans (default: to the last pose)."),
@@ -61,6 +73,11 @@ def simulate(
                              "and its truth; the trajectory becomes a smooth spline."),
     imu_rate: float = typer.Option(200.0, "--imu-rate", min=50.0, max=1000.0,
                                    help="IMU rate (Hz) with --imu."),
+    imu_time_offset: float = typer.Option(
+        0.0, "--imu-time-offset", min=-1.0, max=1.0, help="With --imu: imu.csv on a clock S "
+        "seconds behind the lidar's (IMU stamp = lidar time - S), so the config's "
+        "imu.time_offset_s, added to every IMU stamp, is S; written with T_lidar_imu into "
+        "OUT/lidar_slam.yaml."),
     gnss: bool = typer.Option(False, "--gnss", help="Also write gnss.csv (noise, dropouts, "
                               "multipath jumps) and its truth; needs pyproj (lidar-slam[geo])."),
     gnss_rate: float = typer.Option(1.0, "--gnss-rate", min=0.1, max=20.0,
@@ -97,6 +114,9 @@ def simulate(
     """
     from lidar_slam.sim.jobs import SimulateJob, simulate_many, simulate_one
 
+    if imu_time_offset and not imu:
+        raise fail("--imu-time-offset goes with --imu")
+    timing = {"stamp": stamp.value, "imu_time_offset_s": imu_time_offset}
     rates = (imu_rate if imu else None, gnss_rate if gnss else None,
              _numbers(imu_extrinsic, 6, "--imu-extrinsic"), _numbers(gnss_datum, 3, "--gnss-datum"),
              _numbers(gnss_lever_arm, 3, "--gnss-lever-arm"))
@@ -109,7 +129,7 @@ def simulate(
                        f"{', '.join(given)} not taken (--duration-s sets the length)")
         default = WorldKind.outdoor if motion is Motion.drone else WorldKind.indoor
         _handheld(out, motion, world or default, duration_s or 60.0,
-                  (sensor or Sensor.os1_64).value, seed, overwrite, rates)
+                  (sensor or Sensor.os1_64).value, seed, overwrite, rates, timing)
         return
     if world is not None or duration_s is not None:
         raise fail("--world and --duration-s go with --motion handheld")
@@ -119,7 +139,7 @@ def simulate(
     if len(poses) == 1:
         typer.echo(simulate_one(SimulateJob(str(poses[0]), str(out), _str(calib), _str(times),
                                             sensor.value, start, n_scans, seed, overwrite,
-                                            *rates)))
+                                            *rates, **timing)))
         return
     from lidar_slam.batch import sequence_names
 
@@ -130,13 +150,13 @@ def simulate(
     names = sequence_names(paths)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [SimulateJob(str(p), str((out / name).absolute()), _str(calib and calib.absolute()),
-                        None, sensor.value, start, n_scans, seed, overwrite, *rates)
+                        None, sensor.value, start, n_scans, seed, overwrite, *rates, **timing)
             for p, name in zip(paths, names)]
     simulate_many(jobs, names, address, workers, on_done=typer.echo)
 
 
 def _handheld(out: Path, motion: Motion, world: WorldKind, duration_s: float, sensor: str,
-              seed: int, overwrite: bool, rates: tuple) -> None:
+              seed: int, overwrite: bool, rates: tuple, timing: dict) -> None:
     """One walk, trot or flight (lidar_slam.sim.motions) into out."""
     from lidar_slam.sim.jobs import HandheldJob, simulate_handheld_one
     from lidar_slam.sim.motions import MOTION_WORLDS
@@ -147,7 +167,7 @@ def _handheld(out: Path, motion: Motion, world: WorldKind, duration_s: float, se
         raise fail(f"--motion {motion.value} goes through --world "
                    f"{' / '.join(MOTION_WORLDS[motion.value])}, not {world.value}")
     typer.echo(simulate_handheld_one(HandheldJob(str(out), world.value, duration_s, sensor,
-                                                 seed, overwrite, *rates,
+                                                 seed, overwrite, *rates, **timing,
                                                  motion=motion.value)))
 
 

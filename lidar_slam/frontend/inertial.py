@@ -291,6 +291,14 @@ class ImuFrontend:
                 "gyro_bias_radps": np.round(self.bias.gyroscope(), 6).tolist(),
                 "accel_bias_mps2": np.round(self.bias.accelerometer(), 5).tolist()}
 
+    def up_in_lidar(self) -> np.ndarray | None:
+        """Unit vector against gravity in the lidar frame of the last registered scan (at its
+        reference instant), from the IMU's attitude; None while the IMU is not initialised."""
+        if self.nav is None:
+            return None
+        R_G_L = self.nav.pose().rotation().matrix() @ self.T_imu_lidar[:3, :3]
+        return R_G_L[2].copy()  # R_G_L^T @ (0, 0, 1)
+
     def _restart(self) -> None:
         """Back to lidar-only until initialised again (bias and the attitude reached kept)."""
         if self.nav is not None:

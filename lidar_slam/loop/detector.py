@@ -5,13 +5,16 @@ The back-end (lidar_slam.backend.slam_backend) turns accepted constraints into g
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
+from lidar_slam.backend.factors import sigmas_to_information
 from lidar_slam.config import SlamConfig
-from lidar_slam.geometry import relative, to_xyz_quat, transform_points
+from lidar_slam.frontend.edge_information import EdgeInformation
+from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import Side, match_side, query_side, verify
 from lidar_slam.map.keyframes import KeyframeStore
@@ -69,6 +72,19 @@ class LoopDetector:
         self.index = ScanContextIndex(cfg.loop.scan_context, store.root / "descriptors.bin")
         self._path_m = [0.0]  # odometry path travelled up to each keyframe (metres)
         self._sides: dict[tuple[int, int], Side] = {}  # match submaps' clouds, oldest first
+        # The drift gate: each odometry edge's covariance (into keyframe k, rotation first, k's
+        # frame), from the same data and function as the back-end's edge information.
+        b = cfg.backend
+        self._edges = (EdgeInformation(b.odom_information, cfg.keyframes.cloud_voxel_m)
+                       if b.odom_information.enabled else None)
+        self._default_cov = np.linalg.inv(sigmas_to_information(b.odom_rot_sigma_deg,
+                                                                b.odom_trans_sigma_m))
+        self._edge_cov: list[np.ndarray] = []
+        self._gate_d2 = 0.0
+        if cfg.loop.drift_gate_p > 0:
+            from scipy.stats import chi2
+
+            self._gate_d2 = float(chi2.isf(cfg.loop.drift_gate_p, 6))
 
     def path_m(self, kf_id: int) -> float:
         """Odometry path length from keyframe 0 to kf_id (keyframe to keyframe, metres)."""
@@ -113,6 +129,36 @@ class LoopDetector:
                       query, match, gap, allowed)
         return gap <= allowed
 
+    def _edge_covariance(self, kf_id: int) -> np.ndarray:
+        """Covariance of the odometry edge into keyframe kf_id (computed in keyframe order)."""
+        while len(self._edge_cov) <= kf_id:
+            k = len(self._edge_cov)
+            info = None
+            if self._edges is not None:
+                kf = self.store.get(k)
+                info = self._edges.add(kf.T_world_kf_odom, kf.points.astype(np.float64))
+            self._edge_cov.append(self._default_cov if info is None else np.linalg.inv(info))
+        return self._edge_cov[kf_id]
+
+    def drift_d2(self, match: int, query: int, T_match_query: np.ndarray,
+                 information: np.ndarray) -> float:
+        """Squared Mahalanobis distance of the correction a loop implies, Log(T_odom^-1 T_loop)
+        in the query's frame, under the odometry edges' covariances chained from match to
+        query (each moved into the query's frame by its adjoint) plus the loop's own."""
+        from lidar_slam.backend.gtsam_graph import between_error
+        from lidar_slam.backend.inertial_graph import adjoint
+
+        cov = np.linalg.inv(information)
+        T_k_q = np.eye(4)  # the query keyframe in keyframe k's frame (odometry)
+        T_q = self.store.T_world_kf_odom(query)
+        for k in range(query, match, -1):
+            Ad = adjoint(inverse(T_k_q))
+            cov = cov + Ad @ self._edge_covariance(k) @ Ad.T
+            T_k_q = relative(self.store.T_world_kf_odom(k - 1), T_q)
+        T_odom = relative(self.store.T_world_kf_odom(match), T_q)
+        err = between_error(T_match_query, np.eye(4), T_odom)
+        return float(err @ np.linalg.solve(cov, err))
+
     def candidates(self, kf_id: int, points: np.ndarray) -> list[LoopCandidate]:
         """Scan-context candidates of keyframe kf_id (its points, float64) that the odometry
         makes plausible, best descriptor distance first."""
@@ -152,6 +198,14 @@ class LoopDetector:
                                       kf.id, cand.match, cand.score,
                                       float(np.degrees(cand.yaw_guess_rad)), res.fitness,
                                       res.rmse_m, res.accepted, res.reason, res.T_match_query))
+            if res.accepted and self._gate_d2 > 0:
+                d2 = self.drift_d2(cand.match, kf.id, res.T_match_query, res.constraint.information)
+                log.debug("kf %d -> %d: drift Mahalanobis^2 %.1f", kf.id, cand.match, d2)
+                if d2 > self._gate_d2:
+                    records[-1] = dataclasses.replace(
+                        records[-1], accepted=False,
+                        reason=f"drift: Mahalanobis^2 {d2:.0f} > {self._gate_d2:.1f}")
+                    continue
             if res.accepted:
                 constraint = res.constraint
                 log.info("loop accepted: frame %d -> frame %d (fitness %.2f)", kf.frame_index,

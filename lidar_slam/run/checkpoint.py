@@ -226,6 +226,7 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "loop_T": np.array([c.T_match_query for c in constraints]).reshape(-1, 4, 4),
         "loop_info": np.array([c.information for c in constraints]).reshape(-1, 6, 6),
         "loop_fit": np.array([[c.fitness, c.rmse_m] for c in constraints]).reshape(-1, 2),
+        "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
         "backend_live": (pipe.backend.state() if pipe.backend is not None
                          else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
@@ -276,6 +277,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.stamps_s = [float(s) for s in a["stamps_s"]]
     r.odom_poses = list(a["odom_poses"])
     r.frame_kf = [int(k) for k in a["frame_kf"]]
+    r.kf_up = {int(row[0]): np.array(row[1:]) for row in a.get("kf_up", np.zeros((0, 4)))}
     r.skipped_empty = meta["skipped_empty"]
     r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]
@@ -305,6 +307,9 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
             anchors.insert(0, kf)
     for kf in anchors:
         pipe.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
+    for kf_id in range(len(r.store)):  # the odometry edges' information, as the run had it
+        kf = r.store.get(kf_id)
+        pipe.weigh_keyframe(kf_id, kf.T_world_kf_odom, kf.points)
     for row in meta["loop_records"]:
         T = row.pop("T_match_query")
         r.loops.append(LoopRecord(**row, T_match_query=None if T is None else np.array(T)))
@@ -314,7 +319,8 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
                  (f, e) in zip(a["loop_ids"], a["loop_T"], a["loop_info"], a["loop_fit"])]
         by_query = {c.query: c for c in loops}
         for kf_id in range(len(r.store)):
-            pipe.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id))
+            pipe.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
+                                      r.odom_information.get(kf_id))
             if kf_id in by_query:
                 pipe.backend.add_loop(by_query[kf_id])
         if "backend_live" in a:

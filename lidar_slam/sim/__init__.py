@@ -1,6 +1,7 @@
-"""A spinning-lidar simulator: a procedural street world along a trajectory, ray cast with open3d.
+"""A lidar simulator: a procedural street world along a trajectory, ray cast with open3d.
 
-Modules: sensor (lidar models, poses between stamps), world (the street world), sequence (sweeps
+Modules: sensor (lidar models: spinning multi-beam ones, and a non-repetitive one with a time per
+point; poses between stamps), world (the street world), sequence (sweeps
 and KITTI-layout sequences, KITTI ground truth), inertial (a smooth trajectory, and the IMU and
 GNSS measured along it), jobs (`lidar-slam simulate`: one sequence per pose file, several on the
 Ray fleet of `batch`), handheld (`--motion handheld`: a walk with the lidar in the hand, no pose
@@ -14,15 +15,20 @@ Conventions (also written into every sequence's README):
   sensor mount height; the simulated poses keep the input x, y and heading, and take z (ground +
   mount height) and roll/pitch (ground normal) from that field. Those simulated poses are the
   ones written out.
-- A scan's stamp is the START of its sweep. Column c of a sweep is captured at stamp + c * period /
-  n_azimuth from the pose interpolated at that instant (slerp/lerp between the simulated poses,
-  extrapolated past the last one), so scans carry true motion distortion. With an IMU or GNSS,
+- A scan's stamp is the START of its sweep (`--stamp end`: its END, start + period; the poses
+  and the per-point times then refer to that instant). Column c of a spinning sweep is captured
+  at start + c * period / n_azimuth, each point of a non-repetitive sweep at its own time (a
+  sensor's `sweep(frame, seed)` says which directions fire when), from the pose interpolated at
+  that instant (slerp/lerp between the simulated poses, extrapolated past the last one), so
+  scans carry true motion distortion. With an IMU or GNSS,
   the poses between stamps come from inertial.SmoothTrajectory instead (a cubic spline and a
   RotationSpline through the same poses), for the points and the IMU/GNSS alike. The head
   starts facing backwards (azimuth 180 deg) and turns clockwise seen from above, like a
   Velodyne.
 - Points are in the sensor frame of their own capture instant (raw, not deskewed); per-point times
-  are seconds relative to the stamp, in [0, period).
+  are seconds relative to the stamp, in [0, period) (in [-period, 0) stamped at the end).
+- With an IMU, imu.csv may be on a clock time_offset_s behind the lidar's; lidar_slam.yaml beside
+  the sequence is the config overlay (imu.T_lidar_imu, imu.time_offset_s) a run needs.
 - Output is a KITTI-layout folder: velodyne/NNNNNN.bin (float32 x, y, z, intensity),
   velodyne_times/NNNNNN.bin (float32 s), times.txt, calib.txt (Tr: T_cam_lidar, identity unless
   given), poses.txt with P_i = Tr @ T_seq_lidar_i @ inv(Tr), where the sequence frame is the
@@ -30,8 +36,18 @@ Conventions (also written into every sequence's README):
 """
 
 
-from lidar_slam.sim.sensor import SENSORS, PoseInterpolator, SensorModel, get_sensor
+from lidar_slam.sim.sensor import (
+    SENSORS,
+    LidarModel,
+    NonRepetitiveModel,
+    PoseInterpolator,
+    SensorModel,
+    Sweep,
+    get_sensor,
+)
 from lidar_slam.sim.sequence import (
+    OVERLAY_FILE,
+    STAMPS,
     KittiTruth,
     SimScan,
     SimSummary,
@@ -54,8 +70,9 @@ from lidar_slam.sim.world import (
     place_on_terrain,
 )
 
-__all__ = ["ALBEDO", "CLASSES", "SENSORS", "Centerline", "KittiTruth", "PoseInterpolator",
-           "SensorModel", "SimScan", "SimSummary", "Terrain", "World", "WorldParams",
+__all__ = ["ALBEDO", "CLASSES", "OVERLAY_FILE", "SENSORS", "STAMPS", "Centerline", "KittiTruth",
+           "LidarModel", "NonRepetitiveModel", "PoseInterpolator", "SensorModel", "SimScan",
+           "SimSummary", "Sweep", "Terrain", "World", "WorldParams",
            "build_world", "fit_terrain", "get_sensor", "load_kitti_truth", "make_centerline",
            "place_on_terrain", "sequence_world", "simulate_scan", "simulate_sequence",
            "write_calib"]

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from lidar_slam.io.atomic import write_text_atomic
 from lidar_slam.sim.inertial import SmoothTrajectory
-from lidar_slam.sim.sensor import SensorModel
+from lidar_slam.sim.sensor import LidarModel
 from lidar_slam.sim.world import World, WorldParams, build_world
 
 log = logging.getLogger(__name__)
@@ -335,7 +335,7 @@ def _flat(xy: np.ndarray) -> np.ndarray:
     return np.zeros(len(xy))
 
 
-def build_site(kind: str, seed: int, sensor: SensorModel, corner_m: float | None = None
+def build_site(kind: str, seed: int, sensor: LidarModel, corner_m: float | None = None
                ) -> Site:
     """An interior around a ring corridor, a plaza ringed by streets and buildings, an office
     floor of identical rooms (floors.py) or a warehouse hall; the loop's corners rounded over

@@ -61,11 +61,14 @@ KARLSRUHE = (49.0110, 8.4240, 112.0)
 
 @dataclass(frozen=True)
 class ImuOptions:
-    """The simulated IMU: rate (Hz), noise, and T_lidar_imu (4x4, the IMU frame in the lidar's)."""
+    """The simulated IMU: rate (Hz), noise, T_lidar_imu (4x4, the IMU frame in the lidar's) and
+    time_offset_s: the IMU's clock reads the lidar's minus this (s), so a run adds it back to
+    every imu.csv stamp, as the config's imu.time_offset_s."""
 
     rate_hz: float = 200.0
     noise: ImuNoise = BMI088
     T_lidar_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
+    time_offset_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -176,11 +179,12 @@ def simulate_imu(traj: SmoothTrajectory, t0_s: float, t1_s: float, options: ImuO
     return ImuData(t, gyro, accel, gyro_true, accel_true, bg, ba, v)
 
 
-def write_imu(out: Path, imu: ImuData) -> None:
-    """imu.csv (stamp_s,wx,wy,wz,ax,ay,az) and imu_truth.csv (noise-free values, biases and the
-    world velocity of the IMU)."""
+def write_imu(out: Path, imu: ImuData, time_offset_s: float = 0.0) -> None:
+    """imu.csv (stamp_s,wx,wy,wz,ax,ay,az) on the IMU's clock, time_offset_s (s) behind the
+    lidar's, and imu_truth.csv (noise-free values, biases and the world velocity of the IMU) on
+    the lidar's."""
     with atomic_path(out / "imu.csv") as tmp:
-        np.savetxt(tmp, np.c_[imu.stamps_s, imu.gyro, imu.accel], delimiter=",",
+        np.savetxt(tmp, np.c_[imu.stamps_s - time_offset_s, imu.gyro, imu.accel], delimiter=",",
                    fmt=["%.6f"] + ["%.9g"] * 6, header="stamp_s,wx,wy,wz,ax,ay,az", comments="")
     with atomic_path(out / "imu_truth.csv") as tmp:
         np.savetxt(tmp, np.c_[imu.stamps_s, imu.gyro_true, imu.accel_true, imu.gyro_bias,

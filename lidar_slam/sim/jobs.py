@@ -15,7 +15,7 @@ log = logging.getLogger("lidar_slam")
 
 SIMULATE_OUTPUTS = ("velodyne", "velodyne_times", "poses.txt", "times.txt", "calib.txt",
                     "README.txt", "imu.csv", "imu_truth.csv", "gnss.csv", "gnss_truth.csv",
-                    "T_world_seq.txt", "bursts.csv")
+                    "T_world_seq.txt", "bursts.csv", "lidar_slam.yaml")
 
 
 @dataclass(frozen=True)
@@ -36,6 +36,8 @@ class SimulateJob:
     imu_extrinsic: tuple[float, ...] | None = None  # x, y, z (m), roll, pitch, yaw (deg)
     gnss_datum: tuple[float, ...] | None = None  # lat, lon (deg), height (m)
     gnss_lever_arm: tuple[float, ...] | None = None  # m, lidar frame
+    stamp: str = "start"  # the instant of the sweep times.txt and poses.txt refer to
+    imu_time_offset_s: float = 0.0  # the IMU's clock reads the lidar's minus this (s)
 
 
 def simulate_one(job: SimulateJob, progress: bool = True) -> str:
@@ -75,7 +77,7 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
     try:
         summary = simulate_sequence(poses_lidar, stamps, out, sensor=job.sensor, seed=job.seed,
                                     start=job.start, n_scans=job.n_scans, Tr_cam_lidar=Tr,
-                                    on_scan=bar.tick, imu=imu, gnss=gnss)
+                                    on_scan=bar.tick, imu=imu, gnss=gnss, stamp=job.stamp)
     finally:
         bar.close()
     extra = "".join(f", {n} {what}" for n, what in ((summary.n_imu, "IMU samples"),
@@ -100,6 +102,8 @@ class HandheldJob:
     imu_extrinsic: tuple[float, ...] | None = None
     gnss_datum: tuple[float, ...] | None = None
     gnss_lever_arm: tuple[float, ...] | None = None
+    stamp: str = "start"
+    imu_time_offset_s: float = 0.0
     motion: str = "handheld"  # or legged, drone (lidar_slam.sim.motions.MOTIONS)
 
 
@@ -118,7 +122,7 @@ def simulate_handheld_one(job: HandheldJob, progress: bool = True) -> str:
     bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
     try:
         summary, st = simulate_motion(out, job.motion, job.world, job.seed, job.duration_s,
-                                      job.sensor, imu, gnss, on_scan=bar.tick)
+                                      job.sensor, imu, gnss, on_scan=bar.tick, stamp=job.stamp)
     finally:
         bar.close()
     extra = "".join(f", {n} {what}" for n, what in ((summary.n_imu, "IMU samples"),
@@ -135,7 +139,8 @@ def _inertial(job: SimulateJob | HandheldJob):
 
     imu = gnss = None
     if job.imu_rate_hz is not None:
-        imu = ImuOptions(rate_hz=job.imu_rate_hz, T_lidar_imu=_extrinsic(job.imu_extrinsic))
+        imu = ImuOptions(rate_hz=job.imu_rate_hz, T_lidar_imu=_extrinsic(job.imu_extrinsic),
+                         time_offset_s=job.imu_time_offset_s)
     if job.gnss_rate_hz is not None:
         gnss = GnssOptions(rate_hz=job.gnss_rate_hz,
                            datum=job.gnss_datum or GnssOptions().datum,

@@ -26,7 +26,7 @@ from lidar_slam.sim.handheld import (
     write_bursts,
 )
 from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
-from lidar_slam.sim.sensor import SensorModel, get_sensor
+from lidar_slam.sim.sensor import LidarModel, get_sensor
 
 log = logging.getLogger(__name__)
 
@@ -101,14 +101,15 @@ def make_motion(kind: str, site: Site, seed: int, duration_s: float) -> Motion:
 
 
 def simulate_motion(out_dir: str | Path, motion: str, world_kind: str, seed: int,
-                    duration_s: float, sensor: str | SensorModel = "os1-64",
+                    duration_s: float, sensor: str | LidarModel = "os1-64",
                     imu: ImuOptions | None = None, gnss: GnssOptions | None = None,
-                    on_scan: Callable[[int], None] | None = None
+                    on_scan: Callable[[int], None] | None = None, stamp: str = "start"
                     ) -> tuple[object, MotionStats]:
     """A motion of duration_s (s) through a seeded world, written as a KITTI-layout sequence
-    (as simulate_sequence; scan k at k / rate_hz, the truth in poses.txt) with imu.csv /
-    gnss.csv from the same trajectory. Raises ValueError when the sensor comes within
-    CLEARANCE_M of a surface. Returns (SimSummary, MotionStats)."""
+    (as simulate_sequence; sweep k from k / rate_hz, stamped at its start or end as stamp
+    says, the truth in poses.txt) with imu.csv / gnss.csv from the same trajectory. Raises
+    ValueError when the sensor comes within CLEARANCE_M of a surface. Returns (SimSummary,
+    MotionStats)."""
     from lidar_slam.sim.sequence import write_sequence
 
     if motion not in MOTIONS:
@@ -131,7 +132,7 @@ def simulate_motion(out_dir: str | Path, motion: str, world_kind: str, seed: int
                           "  The sensor moves", 1)
     summary = write_sequence(out_dir, site.world, sensor, m.trajectory, stamps,
                              m.trajectory(stamps), seed, np.eye(4), world_s, on_scan, imu,
-                             gnss, motion=text)
+                             gnss, motion=text, stamp=stamp)
     if m.bursts is not None:
         write_bursts(Path(out_dir) / "bursts.csv", m.bursts)
     log.info("%s %s seed %d: %s", motion, world_kind, seed, m.stats)
@@ -139,10 +140,10 @@ def simulate_motion(out_dir: str | Path, motion: str, world_kind: str, seed: int
 
 
 def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_s: float,
-                      sensor: str | SensorModel = "os1-64", imu: ImuOptions | None = None,
+                      sensor: str | LidarModel = "os1-64", imu: ImuOptions | None = None,
                       gnss: GnssOptions | None = None,
-                      on_scan: Callable[[int], None] | None = None
+                      on_scan: Callable[[int], None] | None = None, stamp: str = "start"
                       ) -> tuple[object, MotionStats]:
     """simulate_motion of a handheld walk."""
     return simulate_motion(out_dir, "handheld", world_kind, seed, duration_s, sensor, imu, gnss,
-                           on_scan)
+                           on_scan, stamp)

@@ -1,0 +1,75 @@
+"""How sure each odometry edge is, from its own data: the information matrix of the motion
+between consecutive keyframes.
+
+kiss-icp does not expose its registration's Hessian, so each keyframe's cloud is placed on the
+previous keyframe's cloud by the odometry's relative pose (no ICP is run: the odometry's pose is
+the estimate being weighed) and the point-to-plane Hessian of that fit is taken there,
+J = [(p x n)^T, n^T] per residual, scaled by the residual's own measured variance:
+
+    information = sum(J^T J) / rms^2
+
+The shape of the Hessian says which directions the scene constrains (a corridor leaves its axis
+weak; an open field leaves yaw weak); the residual says how well the two clouds agree. Two
+corrections keep it honest:
+
+- neighbouring residuals on one surface are not independent (the same wall, the same voxel
+  quantisation): the source cloud is thinned to one point per `cell_m` cell first, so the count
+  of residuals is roughly the count of distinct surface patches;
+- floors: a covariance of `min_rot_sigma_deg` / `min_trans_sigma_m` per axis is added to the
+  measured one (what a registration on a dense scene cannot see: calibration, deskew and
+  quantisation errors), so no direction is more certain than that while a weak direction stays
+  as weak as measured (a uniform down-scaling, as the loop verification does, would make a
+  car's weak forward axis ten times too loose because its ground pins z); and a direction the
+  clouds cannot observe keeps a weak information of (10 deg, 1 m)^-2 so that the matrix stays
+  positive definite.
+
+Everything here is a function of the stored keyframe clouds and odometry poses, so a resumed run
+recomputes the same matrices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lidar_slam.config import OdometryInformationConfig
+from lidar_slam.geometry import relative
+from lidar_slam.registration import PlaneTarget, plane_fit, voxel_centroids
+
+WEAK_INFORMATION = np.diag([np.radians(10.0) ** -2] * 3 + [1.0] * 3)
+MIN_RESIDUALS = 30  # fewer inliers than this: the configured sigmas instead
+
+
+def information(fit_hessian: np.ndarray, rms_m: float, cfg: OdometryInformationConfig
+                ) -> np.ndarray:
+    """6x6 information (rotation first) from a point-to-plane Hessian sum(J^T J) and the RMS
+    residual (m) of its inliers, floored as the module says."""
+    H = fit_hessian / max(rms_m, cfg.min_residual_m) ** 2
+    cov = np.linalg.inv(0.5 * (H + H.T) + WEAK_INFORMATION)
+    cov += np.diag([np.radians(cfg.min_rot_sigma_deg) ** 2] * 3 + [cfg.min_trans_sigma_m ** 2] * 3)
+    info = np.linalg.inv(cov)
+    return 0.5 * (info + info.T)
+
+
+class EdgeInformation:
+    """add(T_world_kf, points) for each keyframe in order -> the information of the edge from the
+    previous keyframe to it (None for the first, or when either cloud is empty or too thin:
+    the caller then uses the configured sigmas)."""
+
+    def __init__(self, cfg: OdometryInformationConfig, cloud_voxel_m: float):
+        self.cfg = cfg
+        self.cloud_voxel_m = cloud_voxel_m
+        self._prev: tuple[np.ndarray, np.ndarray] | None = None  # T_world_kf, points
+
+    def add(self, T_world_kf: np.ndarray, points: np.ndarray) -> np.ndarray | None:
+        """points: (N, 3) the keyframe's cloud in its own frame (m)."""
+        prev, self._prev = self._prev, (T_world_kf, np.asarray(points, np.float64))
+        if prev is None or len(prev[1]) < MIN_RESIDUALS or len(points) < MIN_RESIDUALS:
+            return None
+        c = self.cfg
+        target = PlaneTarget(prev[1], self.cloud_voxel_m, 0, c.max_correspondence_m)
+        source = voxel_centroids(self._prev[1], c.cell_m)
+        fit = plane_fit(target, source, relative(prev[0], T_world_kf), c.max_correspondence_m,
+                        c.min_residual_m)
+        if fit.n < MIN_RESIDUALS:
+            return None
+        return information(fit.hessian, fit.rms_m, c)

@@ -1,0 +1,136 @@
+"""Odometry edges weighed by their own data (lidar_slam.frontend.edge_information) and the
+odometry's variance checked against the IMU (lidar_slam.backend.inertial.odometry_variance)."""
+
+import numpy as np
+
+from lidar_slam.backend.factors import BetweenFactor
+from lidar_slam.backend.inertial import odometry_variance
+from lidar_slam.config import OdometryInformationConfig
+from lidar_slam.frontend.edge_information import EdgeInformation
+from lidar_slam.geometry import make_pose
+
+
+def _corridor(rng, noise_m: float, length_m: float = 60.0) -> np.ndarray:
+    """Two walls (y = +-2 m), a floor and a ceiling along x, sampled every ~5 cm."""
+    x = rng.uniform(-length_m / 2, length_m / 2, 40000)
+    u = rng.uniform(0.0, 1.0, 40000)
+    side = rng.integers(0, 4, 40000)
+    y = np.where(side == 0, 2.0, np.where(side == 1, -2.0, 4.0 * u - 2.0))
+    z = np.where(side == 2, -1.0, np.where(side == 3, 1.5, 2.5 * u - 1.0))
+    return np.c_[x, y, z] + rng.normal(0.0, noise_m, (40000, 3))
+
+
+def _room(rng, noise_m: float) -> np.ndarray:
+    """A 12 x 8 x 3 m box with a pillar: every direction constrained."""
+    pts = []
+    for axis, value in [(0, -6), (0, 6), (1, -4), (1, 4), (2, -1), (2, 2)]:
+        p = rng.uniform([-6, -4, -1], [6, 4, 2], (8000, 3))
+        p[:, axis] = value
+        pts.append(p)
+    pillar = rng.uniform([1.0, 1.0, -1.0], [1.5, 1.5, 2.0], (2000, 3))
+    pts.append(pillar)
+    return np.concatenate(pts) + rng.normal(0.0, noise_m, (50000, 3))
+
+
+def _sigmas(info: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.diag(np.linalg.inv(info)))
+
+
+def _edge(cloud_a: np.ndarray, cloud_b: np.ndarray, cfg=OdometryInformationConfig()):
+    edges = EdgeInformation(cfg, cloud_voxel_m=0.5)
+    assert edges.add(np.eye(4), cloud_a) is None  # the first keyframe has no edge
+    return edges.add(make_pose(np.eye(3), [0.5, 0.0, 0.0]), cloud_b)
+
+
+def test_a_corridor_edge_is_weak_along_the_corridor_and_sure_across_it():
+    rng = np.random.default_rng(0)
+    sig = _sigmas(_edge(_corridor(rng, 0.01), _corridor(rng, 0.01) - [0.5, 0, 0]))
+    assert sig[3] > 0.3, sig  # along x: nothing but the weak prior (1 m)
+    assert sig[4] < 0.02 and sig[5] < 0.02, sig  # across: the walls, the floor
+
+
+def test_noisier_clouds_give_a_less_certain_edge_and_the_floor_holds():
+    rng = np.random.default_rng(1)
+    a, b = _room(rng, 0.0), _room(rng, 0.0) - [0.5, 0, 0]
+    sharp = _sigmas(_edge(a, b))
+    blurred = _sigmas(_edge(a + rng.normal(0, 0.05, a.shape), b + rng.normal(0, 0.05, b.shape)))
+    assert np.all(blurred[3:] > 1.5 * sharp[3:]), (sharp, blurred)
+    cfg = OdometryInformationConfig()
+    # Noise-free clouds: the residual is taken as min_residual_m (1 cm), and the floors are
+    # added: no axis surer than its floor, none far above it.
+    assert np.all((sharp[3:] >= cfg.min_trans_sigma_m) & (sharp[3:] < 1.5 * cfg.min_trans_sigma_m))
+    rot_deg = np.degrees(sharp[:3])
+    assert np.all((rot_deg >= cfg.min_rot_sigma_deg) & (rot_deg < 1.5 * cfg.min_rot_sigma_deg))
+
+
+def test_an_empty_keyframe_has_no_edge_information():
+    edges = EdgeInformation(OdometryInformationConfig(), 0.5)
+    rng = np.random.default_rng(2)
+    edges.add(np.eye(4), _room(rng, 0.01))
+    assert edges.add(np.eye(4), np.zeros((0, 3))) is None
+    assert edges.add(np.eye(4), _room(rng, 0.01)) is None  # its successor neither
+
+
+def test_odometry_variance_grows_with_residuals_beyond_the_edges_own_information():
+    info = np.diag([np.radians(0.1) ** -2] * 3 + [0.01 ** -2] * 3)
+    rng = np.random.default_rng(3)
+    poses = {0: np.eye(4)}
+    edges = []
+    for k in range(1, 200):
+        poses[k] = poses[k - 1] @ make_pose(np.eye(3), [1.0, 0.0, 0.0])
+        # measured motion off by 3 sigma-ish in translation, consistent in rotation
+        err = make_pose(np.eye(3), rng.normal(0.0, 0.03, 3))
+        edges.append(BetweenFactor(k - 1, k, make_pose(np.eye(3), [1.0, 0.0, 0.0]) @ err, info))
+    rot, trans = odometry_variance(edges, poses)
+    assert rot == 1.0  # never below 1
+    assert 6.0 < trans < 14.0, trans  # (3 cm / 1 cm)^2 = 9
+
+
+def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_aliased_one():
+    from lidar_slam.config import load_config
+    from lidar_slam.loop.detector import LoopDetector
+    from lidar_slam.map.keyframes import KeyframeStore
+
+    rng = np.random.default_rng(4)
+    store = KeyframeStore(None)
+    room = _room(rng, 0.01)
+    for k in range(20):  # 20 keyframes 0.5 m apart along x in the same room
+        store.add(k, make_pose(np.eye(3), [0.5 * k, 0.0, 0.0]), room - [0.5 * k, 0, 0], None)
+    det = LoopDetector(load_config(), store)
+    loop_info = np.diag([np.radians(0.2) ** -2] * 3 + [0.02 ** -2] * 3)
+    T_odom = make_pose(np.eye(3), [9.5, 0.0, 0.0])  # keyframe 19 seen from keyframe 0
+    drifted = T_odom @ make_pose(np.eye(3), [0.03, -0.02, 0.0])
+    assert det.drift_d2(0, 19, drifted, loop_info) < 10.0
+    c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
+    turned = T_odom @ make_pose(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), [0.0, 0.0, 0.0])
+    assert det.drift_d2(0, 19, turned, loop_info) > 1000.0
+    shifted = T_odom @ make_pose(np.eye(3), [3.0, 0.0, 0.0])  # a look-alike one bay further
+    assert det.drift_d2(0, 19, shifted, loop_info) > det._gate_d2
+    store.close()
+
+
+def test_a_loop_that_tilts_the_query_against_the_imus_gravity_is_refused(tmp_path):
+    from lidar_slam.config import load_config
+    from lidar_slam.loop.detector import LoopRecord, LoopResult
+    from lidar_slam.pipeline import Pipeline
+    from lidar_slam.types import LoopConstraint
+
+    cfg = load_config()
+    pipe = Pipeline(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"enabled": False})}),
+                    tmp_path / "run")
+    pipe.cfg = cfg
+    pipe.result.kf_up = {0: np.array([0.0, 0.0, 1.0]), 9: np.array([0.0, 0.0, 1.0])}
+
+    def result(roll_deg: float) -> LoopResult:
+        a = np.radians(roll_deg)
+        R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        T = make_pose(R, [1.0, 0.0, 0.0])
+        rec = LoopRecord(90, 0, 9, 0, 0.2, 0.0, 0.9, 0.05, True, "", T)
+        return LoopResult(9, (rec,), LoopConstraint(9, 0, T, np.eye(6), 0.9, 0.05))
+
+    kept = pipe._check_tilt(result(1.0))
+    assert kept.constraint is not None and kept.records[0].accepted
+    refused = pipe._check_tilt(result(5.0))
+    assert refused.constraint is None and not refused.records[0].accepted
+    assert refused.records[0].reason.startswith("gravity: tilt 5.0 deg")
+    pipe.close()
