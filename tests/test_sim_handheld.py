@@ -22,9 +22,9 @@ from lidar_slam.sim.handheld import (
     build_site,
     clearance_m,
     handheld_motion,
-    simulate_handheld,
 )
 from lidar_slam.sim.inertial import NOISELESS, ImuOptions
+from lidar_slam.sim.motions import simulate_handheld
 
 # Fewer columns than an OS1-64 (1024) keeps the scans cheap; the motion is the same.
 SMALL_OS1 = dataclasses.replace(SENSORS["os1-64"], n_azimuth=256)

@@ -125,7 +125,20 @@ class Row:
 # ------------------------------------------------------------------------------ running
 
 
+def _peak_bytes(proc) -> int:
+    """A process's peak resident set so far (VmHWM of /proc/PID/status), else its RSS now."""
+    try:
+        with open(f"/proc/{proc.pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return proc.memory_info().rss
+
+
 def _tree_rss_mb(pid: int) -> float:
+    """Summed peak RSS (MB) so far of a process and every process it started."""
     import psutil
 
     try:
@@ -136,7 +149,7 @@ def _tree_rss_mb(pid: int) -> float:
     total = 0
     for p in procs:
         try:
-            total += p.memory_info().rss
+            total += _peak_bytes(p)
         except psutil.Error:
             pass
     return total / 2**20
@@ -144,8 +157,10 @@ def _tree_rss_mb(pid: int) -> float:
 
 def timed(cmd: list[str], log_path: Path, cwd: Path | None = None) -> tuple[float, float, int]:
     """Wall seconds, peak RSS (MB) and exit code of one child process; its output goes to log.
-    Peak RSS: the larger of the child's own peak (os.wait4) and the summed RSS of the child and
-    every process it started, sampled 4 times a second."""
+    Peak RSS: the summed peak RSS (VmHWM) of the child and every process it started, sampled 4
+    times a second; os.wait4's ru_maxrss only when no sample was taken (a child under 0.25 s),
+    because Linux carries the forking parent's RSS into the child's ru_maxrss across exec (a
+    640 MB parent makes `sleep 0.1` report 636 MB)."""
     import threading
 
     peak = [0.0]
@@ -165,7 +180,7 @@ def timed(cmd: list[str], log_path: Path, cwd: Path | None = None) -> tuple[floa
         done.set()
         sampler.join()
     proc.returncode = os.waitstatus_to_exitcode(status)  # already reaped by wait4
-    return wall, max(usage.ru_maxrss / 1024.0, peak[0]), proc.returncode
+    return wall, peak[0] or usage.ru_maxrss / 1024.0, proc.returncode
 
 
 def command(system: str, seq: Sequence, out: Path) -> list[str]:
@@ -233,7 +248,7 @@ def readme_extrinsic(path: Path) -> np.ndarray | None:
     return None
 
 
-def write_rko_lio_input(seq: Sequence, dest: Path) -> str | None:
+def write_rko_lio_input(seq: Sequence, dest: Path, lio: dict | None = None) -> str | None:
     """Write the benchmarked scans and the input's IMU in rko_lio's raw folder format under dest
     (replaced), and dest/../rko_lio_config.yaml; returns why rko_lio cannot run (no IMU) or None.
 
@@ -244,6 +259,7 @@ def write_rko_lio_input(seq: Sequence, dest: Path) -> str | None:
     per-point time); scans without per-point times get no time field (rko_lio then warns and
     does not deskew). transforms.yaml makes the lidar the base frame: T_lidar_to_base = I,
     T_imu_to_base = imu.T_lidar_imu of the config (the IMU frame into the lidar frame).
+    lio: rko_lio's LIOConfig settings (its `lio:` section) other than its defaults.
     """
     import yaml
 
@@ -270,7 +286,8 @@ def write_rko_lio_input(seq: Sequence, dest: Path) -> str | None:
     extrinsics = {"T_imu_to_base": cfg.imu.T_lidar_imu_matrix().tolist(),
                   "T_lidar_to_base": np.eye(4).tolist()}
     (dest / "transforms.yaml").write_text(yaml.safe_dump(extrinsics))
-    (dest.parent / "rko_lio_config.yaml").write_text(yaml.safe_dump(RKO_CONFIG))
+    config = {**RKO_CONFIG, **({"lio": lio} if lio else {})}
+    (dest.parent / "rko_lio_config.yaml").write_text(yaml.safe_dump(config))
     for scan in src.scans(seq.start, seq.n):
         columns = [("x", "f8"), ("y", "f8"), ("z", "f8")]
         if scan.point_times is not None:
@@ -568,7 +585,8 @@ def warm_page_cache(path: Path) -> tuple[float, float]:
     return total / 1e6, time.perf_counter() - t0
 
 
-def prepare_rko_lio(rows: dict[str, Row], seq: Sequence, seq_dir: Path) -> None:
+def prepare_rko_lio(rows: dict[str, Row], seq: Sequence, seq_dir: Path,
+                    lio: dict | None = None) -> None:
     """Write rko_lio's input for seq (untimed), or mark its row skipped (no IMU) or failed;
     warns on every row when a simulated sequence's README.txt states another T_lidar_imu than
     the lidar-slam config (both systems would be given the wrong extrinsic)."""
@@ -577,7 +595,7 @@ def prepare_rko_lio(rows: dict[str, Row], seq: Sequence, seq_dir: Path) -> None:
     row = rows["rko-lio"]
     t0 = time.perf_counter()
     try:
-        row.skipped = write_rko_lio_input(seq, seq_dir / "rko-lio" / "input")
+        row.skipped = write_rko_lio_input(seq, seq_dir / "rko-lio" / "input", lio)
     except LidarSlamError as exc:
         row.error = f"input for rko_lio: {exc}"
         return
@@ -585,16 +603,53 @@ def prepare_rko_lio(rows: dict[str, Row], seq: Sequence, seq_dir: Path) -> None:
         print(f"{seq.name}: {LABELS['rko-lio']}: {row.skipped}", flush=True)
         return
     print(f"{seq.name}: wrote rko_lio's input in {time.perf_counter() - t0:.1f} s", flush=True)
+    settings = (f"its settings {lio}, its own defaults otherwise" if lio else
+                "its own defaults otherwise (initialization_phase off: it would assume a "
+                "start at rest)")
     row.notes.append("input written once beforehand (untimed) in rko_lio's raw format: "
-                     "lidar/<stamp ns>.ply, imu.csv, transforms.yaml (base = lidar frame); its "
-                     "own defaults otherwise (initialization_phase off: it would assume a start "
-                     "at rest)")
+                     f"lidar/<stamp ns>.ply, imu.csv, transforms.yaml (base = lidar frame); "
+                     f"{settings}")
     stated = readme_extrinsic(seq.path)
     used = load_config(seq.config).imu.T_lidar_imu_matrix()
     if stated is not None and not np.allclose(stated, used, atol=1e-6):
         for r in rows.values():
             r.notes.append("README.txt states another T_lidar_imu than the lidar-slam config "
                            "(imu.T_lidar_imu); pass the right one with --config-for")
+
+
+def write_truth_files(seq: Sequence, seq_dir: Path) -> tuple[Path | None, Path | None]:
+    """seq's truth as KITTI files in seq_dir: at the stamps (for lidar-slam) and at each
+    sweep's last point (for the peers that report that instant; the stamps' when the scans
+    have no per-point times); (None, None) without truth."""
+    if seq.gt is None:
+        return None, None
+    gt_file = gt_end_file = seq_dir / "ground_truth_kitti.txt"
+    write_kitti_poses(gt_file, seq.gt)
+    gt_end = sweep_end_truth(seq)
+    if gt_end is not None:
+        gt_end_file = seq_dir / "ground_truth_sweep_end_kitti.txt"
+        write_kitti_poses(gt_end_file, gt_end)
+    return gt_file, gt_end_file
+
+
+def run_once(row: Row, seq: Sequence, seq_dir: Path, label: str) -> None:
+    """One timed run of row's system on seq in seq_dir/<system> (nothing when the row already
+    failed or was skipped): its wall time and peak MB appended to the row, or the row's error."""
+    if row.error or row.skipped:
+        return
+    s = row.system
+    out = seq_dir / s
+    out.mkdir(exist_ok=True)
+    if s == "rko-lio":  # it numbers its outputs; one run's only
+        shutil.rmtree(out / "results", ignore_errors=True)
+    wall, mb, code = timed(command(s, seq, out), out / "log.txt", cwd=out)
+    print(f"{seq.name} {LABELS[s]} {label}: {wall:.2f} s, {mb:.0f} MB"
+          + (f", exit {code}" if code else ""), flush=True)
+    if code != 0:
+        row.error = f"exit code {code}, see {out / 'log.txt'}"
+        return
+    row.wall_s.append(wall)
+    row.peak_mb.append(mb)
 
 
 def git_commit() -> str:
@@ -639,14 +694,7 @@ def main(argv: list[str] | None = None) -> int:
     for seq in seqs:
         seq_dir = args.out / seq.name
         seq_dir.mkdir(parents=True, exist_ok=True)
-        gt_file = gt_end_file = None
-        if seq.gt is not None:
-            gt_file = gt_end_file = seq_dir / "ground_truth_kitti.txt"
-            write_kitti_poses(gt_file, seq.gt)
-            gt_end = sweep_end_truth(seq)
-            if gt_end is not None:
-                gt_end_file = seq_dir / "ground_truth_sweep_end_kitti.txt"
-                write_kitti_poses(gt_end_file, gt_end)
+        gt_file, gt_end_file = write_truth_files(seq, seq_dir)
         seq_rows = {s: Row(seq.name, s, seq.n) for s in systems}
         if "rko-lio" in seq_rows:
             prepare_rko_lio(seq_rows, seq, seq_dir)
@@ -654,21 +702,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{seq.name}: read {mb_read:.0f} MB in {secs:.1f} s to warm the page cache",
               flush=True)
         for rep in range(args.repeats):  # interleaved so every system sees the same load
-            for s, row in seq_rows.items():
-                if row.error or row.skipped:
-                    continue
-                out = seq_dir / s
-                out.mkdir(exist_ok=True)
-                if s == "rko-lio":  # it numbers its outputs; one run's only
-                    shutil.rmtree(out / "results", ignore_errors=True)
-                wall, mb, code = timed(command(s, seq, out), out / "log.txt", cwd=out)
-                print(f"{seq.name} {LABELS[s]} repeat {rep + 1}/{args.repeats}: {wall:.2f} s, "
-                      f"{mb:.0f} MB" + (f", exit {code}" if code else ""), flush=True)
-                if code != 0:
-                    row.error = f"exit code {code}, see {out / 'log.txt'}"
-                    continue
-                row.wall_s.append(wall)
-                row.peak_mb.append(mb)
+            for row in seq_rows.values():
+                run_once(row, seq, seq_dir, f"repeat {rep + 1}/{args.repeats}")
         for s, row in seq_rows.items():
             if not row.error and not row.skipped:
                 evaluate_row(row, seq, seq_dir / s, gt_file if s in OURS else gt_end_file)

@@ -27,11 +27,15 @@ class Stamp(str, Enum):
 
 class Motion(str, Enum):
     handheld = "handheld"
+    legged = "legged"
+    drone = "drone"
 
 
 class WorldKind(str, Enum):
     indoor = "indoor"
     outdoor = "outdoor"
+    office = "office"
+    warehouse = "warehouse"
 
 
 @app.command()
@@ -89,16 +93,21 @@ def simulate(
         "default 0,0,0."),
     motion: Optional[Motion] = typer.Option(
         None, "--motion", help="handheld: a person walking laps with the lidar in the hand "
-        "(quick looks, flicks, shakes: up to 180 deg/s, 10 m/s^2) through --world; no POSES."),
+        "(quick looks, flicks, shakes: up to 180 deg/s, 10 m/s^2); legged: a quadruped's trot "
+        "0.55 m up, abrupt starts and stops, turns on the spot; drone: a multirotor at "
+        "1.5-6 m, climbs, yaw spins, tilts (outdoor or warehouse). Through --world; no POSES."),
     world: Optional[WorldKind] = typer.Option(None, "--world", help="With --motion: indoor "
-                                              "(rooms, corridors, a hall; default) or outdoor "
-                                              "(a plaza among streets and buildings)."),
+                                              "(rooms, corridors, a hall; default), outdoor "
+                                              "(a plaza among streets and buildings; the "
+                                              "drone's default), office (parallel corridors of "
+                                              "identical rooms) or warehouse (pillars, racks, "
+                                              "parked cars, a low ceiling)."),
     duration_s: Optional[float] = typer.Option(None, "--duration-s", min=0.5,
                                                help="With --motion: seconds of walk (default "
                                                "60; one scan per sweep from t = 0)."),
 ) -> None:
     """Ray-cast a lidar along a real trajectory through a procedural street world, or along a
-    handheld walk (--motion handheld) through a built interior or outdoor world.
+    handheld walk, a legged robot's trot or a drone's flight (--motion) through a built world.
 
     POSES: KITTI pose files (left-camera frame, as poses/XX.txt). With several, each becomes
     OUT/<name>, simulated in parallel when Ray is installed (`lidar-slam[cluster]`).
@@ -118,7 +127,8 @@ def simulate(
         if given:
             raise fail(f"--motion {motion.value} walks its own path in its own world: "
                        f"{', '.join(given)} not taken (--duration-s sets the length)")
-        _handheld(out, world or WorldKind.indoor, duration_s or 60.0,
+        default = WorldKind.outdoor if motion is Motion.drone else WorldKind.indoor
+        _handheld(out, motion, world or default, duration_s or 60.0,
                   (sensor or Sensor.os1_64).value, seed, overwrite, rates, timing)
         return
     if world is not None or duration_s is not None:
@@ -145,15 +155,20 @@ def simulate(
     simulate_many(jobs, names, address, workers, on_done=typer.echo)
 
 
-def _handheld(out: Path, world: WorldKind, duration_s: float, sensor: str, seed: int,
-              overwrite: bool, rates: tuple, timing: dict) -> None:
-    """One handheld walk (lidar_slam.sim.handheld) into out."""
+def _handheld(out: Path, motion: Motion, world: WorldKind, duration_s: float, sensor: str,
+              seed: int, overwrite: bool, rates: tuple, timing: dict) -> None:
+    """One walk, trot or flight (lidar_slam.sim.motions) into out."""
     from lidar_slam.sim.jobs import HandheldJob, simulate_handheld_one
+    from lidar_slam.sim.motions import MOTION_WORLDS
 
-    if world is WorldKind.indoor and rates[1] is not None:
+    if world is not WorldKind.outdoor and rates[1] is not None:
         raise fail("--gnss needs --world outdoor: a receiver indoors has no fix")
+    if world.value not in MOTION_WORLDS[motion.value]:
+        raise fail(f"--motion {motion.value} goes through --world "
+                   f"{' / '.join(MOTION_WORLDS[motion.value])}, not {world.value}")
     typer.echo(simulate_handheld_one(HandheldJob(str(out), world.value, duration_s, sensor,
-                                                 seed, overwrite, *rates, **timing)))
+                                                 seed, overwrite, *rates, **timing,
+                                                 motion=motion.value)))
 
 
 def _numbers(text: str | None, n: int, flag: str) -> tuple[float, ...] | None:

@@ -5,7 +5,9 @@ point; poses between stamps), world (the street world), sequence (sweeps
 and KITTI-layout sequences, KITTI ground truth), inertial (a smooth trajectory, and the IMU and
 GNSS measured along it), jobs (`lidar-slam simulate`: one sequence per pose file, several on the
 Ray fleet of `batch`), handheld (`--motion handheld`: a walk with the lidar in the hand, no pose
-file) and indoor (the built interior it walks through).
+file), legged and drone (`--motion legged|drone`: a quadruped's trot, a multirotor's flight),
+motions (one of those three through a world, written as a sequence), indoor (the built interior
+a walk goes through) and floors (`--world office|warehouse`: identical rooms, a pillared hall).
 
 Conventions (also written into every sequence's README):
 - Input poses are T_world_lidar (K, 4, 4) at stamps_s (K,). The world is built along the stretch

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,8 +22,8 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.io.atomic import write_text_atomic
-from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
-from lidar_slam.sim.sensor import LidarModel, get_sensor
+from lidar_slam.sim.inertial import SmoothTrajectory
+from lidar_slam.sim.sensor import LidarModel
 from lidar_slam.sim.world import World, WorldParams, build_world
 
 log = logging.getLogger(__name__)
@@ -33,7 +32,7 @@ MAX_RATE_DPS = 180.0
 MAX_ACCEL_MPS2 = 10.0  # kinematic: |d2p/dt2|, gravity not included
 CLEARANCE_M = 0.5
 KEY_RATE_HZ = 100.0
-WORLDS = ("indoor", "outdoor")
+WORLDS = ("indoor", "outdoor", "office", "warehouse")
 
 
 def _smoothstep(u: np.ndarray) -> np.ndarray:
@@ -52,15 +51,25 @@ class LoopPath:
 
     spline: CubicSpline
     length_m: float
+    # The polygon's corners in walking order from the start point, closed (first = last = the
+    # start): for a motion that walks straight legs and turns on the spot.
+    waypoints: np.ndarray | None = None
 
     @staticmethod
     def rectangle(length_m: float, width_m: float, corner_m: float, clockwise: bool,
                   start_m: float) -> LoopPath:
         """The rectangle (0, 0)-(length_m, width_m), corners rounded over ~corner_m, walked
         from start_m along it (counter-clockwise from the origin unless clockwise)."""
+        corners = np.array([[0.0, 0.0], [length_m, 0.0], [length_m, width_m], [0.0, width_m]])
+        return LoopPath.polygon(corners, corner_m, clockwise, start_m)
+
+    @staticmethod
+    def polygon(corners: np.ndarray, corner_m: float, clockwise: bool, start_m: float
+                ) -> LoopPath:
+        """The closed polygon through corners (K, 2) (m, in order), corners rounded over
+        ~corner_m, walked from start_m along it (in the corners' order unless clockwise)."""
         step = 0.02
-        corners = np.array([[0.0, 0.0], [length_m, 0.0], [length_m, width_m], [0.0, width_m],
-                            [0.0, 0.0]])
+        corners = np.r_[corners, corners[:1]]
         seg = np.linalg.norm(np.diff(corners, axis=0), axis=1)
         s = np.arange(0.0, seg.sum(), step)
         arc = np.r_[0.0, np.cumsum(seg)]
@@ -73,7 +82,7 @@ class LoopPath:
         closed = np.r_[xy, xy[:1]]
         arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))]
         return LoopPath(CubicSpline(arc, closed, bc_type="periodic", extrapolate="periodic"),
-                        float(arc[-1]))
+                        float(arc[-1]), _waypoints(corners, start_m, clockwise))
 
     def xy(self, s_m: np.ndarray, nu: int = 0) -> np.ndarray:
         """(N, 2) points (nu=0) or derivatives in s of the path at arc lengths s_m."""
@@ -82,6 +91,21 @@ class LoopPath:
     def samples(self, step_m: float = 0.25) -> np.ndarray:
         """(N, 2) one lap, every step_m."""
         return self.xy(np.arange(0.0, self.length_m, step_m))
+
+
+def _waypoints(closed_corners: np.ndarray, start_m: float, clockwise: bool) -> np.ndarray:
+    """The start point (start_m along the closed polygon) and the corners after it in walking
+    order, back to the start."""
+    seg = np.linalg.norm(np.diff(closed_corners, axis=0), axis=1)
+    arc = np.r_[0.0, np.cumsum(seg)]
+    s0 = start_m % arc[-1]
+    start = np.array([np.interp(s0, arc, closed_corners[:, j]) for j in range(2)])
+    k = int(np.searchsorted(arc, s0, side="right"))  # first corner after the start
+    ahead = np.r_[closed_corners[k:-1], closed_corners[:k]]
+    if clockwise:  # walked backwards: the corners before the start, nearest first
+        ahead = np.r_[closed_corners[k - 1::-1], closed_corners[-2:k - 1:-1]]
+    keep = np.linalg.norm(ahead - start, axis=1) > 1e-6
+    return np.r_[start[None], ahead[keep], start[None]]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -304,23 +328,46 @@ class Site:
     world: World
     path: LoopPath
     ground: Callable[[np.ndarray], np.ndarray]
+    ceiling_m: float | None = None  # indoors: the ceiling's height above the floor
 
 
-def build_site(kind: str, seed: int, sensor: LidarModel) -> Site:
-    """An interior around a ring corridor, or a plaza ringed by streets and buildings."""
+def _flat(xy: np.ndarray) -> np.ndarray:
+    return np.zeros(len(xy))
+
+
+def build_site(kind: str, seed: int, sensor: LidarModel, corner_m: float | None = None
+               ) -> Site:
+    """An interior around a ring corridor, a plaza ringed by streets and buildings, an office
+    floor of identical rooms (floors.py) or a warehouse hall; the loop's corners rounded over
+    corner_m (default: 0.6 m indoors, 1.5 m outdoors: a walker's)."""
+    from lidar_slam.sim import floors
     from lidar_slam.sim.indoor import IndoorLayout, build_indoor_world
 
     rng = np.random.default_rng([seed, 30])
     if kind == "indoor":
         lay = IndoorLayout.draw(rng)
-        path = LoopPath.rectangle(lay.length_m, lay.width_m, 0.6, bool(rng.random() < 0.5),
+        path = LoopPath.rectangle(lay.length_m, lay.width_m, corner_m or 0.6,
+                                  bool(rng.random() < 0.5),
                                   float(rng.uniform(0.0, 2 * (lay.length_m + lay.width_m))))
         world = build_indoor_world(lay, path.samples(), seed)
-        return Site(kind, world, path, lambda xy: np.zeros(len(xy)))
+        return Site(kind, world, path, _flat, lay.ceiling_m)
+    if kind in ("office", "warehouse"):
+        if kind == "office":
+            lay = floors.OfficeLayout.draw(rng)
+            corners = lay.loop_corners(int(rng.integers(lay.n_corridors - 1)))
+        else:
+            lay = floors.WarehouseLayout.draw(rng)
+            corners = lay.loop_corners()
+        lap = float(np.sum(np.linalg.norm(np.diff(np.r_[corners, corners[:1]], axis=0), axis=1)))
+        path = LoopPath.polygon(corners, corner_m or 0.6, bool(rng.random() < 0.5),
+                                float(rng.uniform(0.0, lap)))
+        build = floors.build_office_world if kind == "office" else floors.build_warehouse_world
+        world = build(lay, path.samples(), seed)
+        return Site(kind, world, path, _flat, lay.ceiling_m)
     if kind != "outdoor":
         raise ValueError(f"unknown world {kind!r}; choose one of {WORLDS}")
     length, width = float(rng.uniform(20.0, 28.0)), float(rng.uniform(11.0, 15.0))
-    path = LoopPath.rectangle(length, width, 1.5, bool(rng.random() < 0.5),
+    path = LoopPath.rectangle(length, width, corner_m or 1.5, bool(rng.random() < 0.5),
                               float(rng.uniform(0.0, 2 * (length + width))))
     xy = path.samples(0.5)
     tangent = path.xy(np.arange(0.0, path.length_m, 0.5), 1)
@@ -347,45 +394,3 @@ def clearance_m(world: World, traj: SmoothTrajectory, t0_s: float, t1_s: float,
     """Distance (m) from the sensor to the nearest surface every step_s over [t0_s, t1_s]."""
     t = np.arange(t0_s, t1_s + step_s / 2, step_s)
     return world.closest(traj(t)[:, :3, 3])[0]
-
-
-def simulate_handheld(out_dir: str | Path, world_kind: str, seed: int, duration_s: float,
-                      sensor: str | LidarModel = "os1-64", imu: ImuOptions | None = None,
-                      gnss: GnssOptions | None = None,
-                      on_scan: Callable[[int], None] | None = None, stamp: str = "start"):
-    """A handheld walk of duration_s (s) through a seeded indoor or outdoor world, written as a
-    KITTI-layout sequence (as simulate_sequence; sweep k from k / rate_hz, stamped at its start
-    or end as stamp says, the truth in poses.txt) with imu.csv / gnss.csv from the same
-    trajectory. Returns (SimSummary, MotionStats)."""
-    from lidar_slam.sim.sequence import write_sequence
-
-    sensor = get_sensor(sensor)
-    t0 = time.perf_counter()
-    site = build_site(world_kind, seed, sensor)
-    motion = handheld_motion(site.path, site.ground, seed, duration_s)
-    n = int(round(duration_s * sensor.rate_hz))
-    stamps = np.arange(n) / sensor.rate_hz
-    gap = clearance_m(site.world, motion.trajectory, 0.0, n / sensor.rate_hz)
-    if gap.min() < CLEARANCE_M:
-        raise ValueError(f"handheld {world_kind} seed {seed}: the sensor comes within "
-                         f"{gap.min():.2f} m of a surface (< {CLEARANCE_M} m)")
-    world_s = time.perf_counter() - t0
-    st = motion.stats
-    text = (f"These poses are the truth of a handheld walk ({world_kind}, seed {seed}):\n"
-            f"  {st.distance_m:.0f} m walked, {st.laps:.2f} laps of a {site.path.length_m:.0f} m "
-            f"loop, {st.n_bursts} quick looks / flicks / shakes;\n  realised maxima: body rate "
-            f"{st.max_rate_dps:.0f} deg/s, acceleration {st.max_accel_mps2:.1f} m/s^2 (gravity "
-            f"not included),\n  specific force {st.max_specific_force_mps2:.1f} m/s^2, speed "
-            f"{st.max_speed_mps:.2f} m/s. Closest surface {gap.min():.2f} m. The sensor moves\n"
-            "  along a cubic spline / RotationSpline through the motion's key poses (100 Hz),\n"
-            "  the same trajectory the IMU and the GNSS are measured on.\n"
-            "bursts.csv: each quick move, kind (look: the arm swings about the body; flick,\n"
-            "  shake: the wrist turns; jolt: the hand shifts and back), axis (0 roll / ahead,\n"
-            "  1 pitch / left, 2 yaw / up), start and end (s), amount (deg, or m for a jolt),\n"
-            "  freq_hz (a shake's).\n")
-    summary = write_sequence(out_dir, site.world, sensor, motion.trajectory, stamps,
-                             motion.trajectory(stamps), seed, np.eye(4), world_s, on_scan, imu,
-                             gnss, motion=text, stamp=stamp)
-    write_bursts(Path(out_dir) / "bursts.csv", motion.bursts)
-    log.info("handheld %s seed %d: %s", world_kind, seed, st)
-    return summary, st

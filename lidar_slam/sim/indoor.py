@@ -215,11 +215,16 @@ def build_indoor_world(layout: IndoorLayout, path_xy: np.ndarray, seed: int) -> 
     of it but walls, which the layout keeps corridor_m / 2 away)."""
     inside = _Interior(layout, path_xy, np.random.default_rng([seed, 10]))
     lo, hi = inside.build()
-    # Floor and ceiling: slabs over the whole interior.
+    return close_interior(inside, lo, hi, layout.ceiling_m, path_xy)
+
+
+def close_interior(inside: _Interior, lo: np.ndarray, hi: np.ndarray, ceiling: float,
+                   path_xy: np.ndarray) -> World:
+    """The World of an interior built within lo..hi (xy, m): floor and ceiling slabs over it,
+    a flat terrain and the walked path (N, 2) as its centreline."""
     mid = (lo + hi) / 2
     size = hi - lo + WALL_M
     inside.buf["ground"].add(*_box(*mid, 0.0, size[0], size[1], -0.3, 0.0))
-    ceiling = layout.ceiling_m
     inside.buf["facade"].add(*_box(*mid, 0.0, size[0], size[1], ceiling, ceiling + 0.3))
     ground = np.c_[path_xy, np.zeros(len(path_xy))]
     terrain = fit_terrain(ground, np.array([lo - 2.0, hi + 2.0]), 1.0, 8.0)

@@ -88,7 +88,8 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
 
 @dataclass(frozen=True)
 class HandheldJob:
-    """`simulate --motion handheld`: a walk through a seeded world, no pose file."""
+    """`simulate --motion handheld|legged|drone`: a walk, a trot or a flight through a seeded
+    world, no pose file."""
 
     out: str
     world: str = "indoor"
@@ -103,14 +104,15 @@ class HandheldJob:
     gnss_lever_arm: tuple[float, ...] | None = None
     stamp: str = "start"
     imu_time_offset_s: float = 0.0
+    motion: str = "handheld"  # or legged, drone (lidar_slam.sim.motions.MOTIONS)
 
 
 def simulate_handheld_one(job: HandheldJob, progress: bool = True) -> str:
-    """Simulate one handheld walk into job.out (the --out rule applies); returns the line to
-    print, with the realised motion maxima."""
+    """Simulate one walk, trot or flight into job.out (the --out rule applies); returns the
+    line to print, with the realised motion maxima."""
     from lidar_slam.run.outdir import prepare_out_dir
     from lidar_slam.run.progress import progress as make_progress
-    from lidar_slam.sim.handheld import simulate_handheld
+    from lidar_slam.sim.motions import simulate_motion
     from lidar_slam.sim.sensor import get_sensor
 
     out = Path(job.out)
@@ -119,14 +121,14 @@ def simulate_handheld_one(job: HandheldJob, progress: bool = True) -> str:
     total = int(round(job.duration_s * get_sensor(job.sensor).rate_hz))
     bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
     try:
-        summary, st = simulate_handheld(out, job.world, job.seed, job.duration_s, job.sensor,
-                                        imu, gnss, on_scan=bar.tick, stamp=job.stamp)
+        summary, st = simulate_motion(out, job.motion, job.world, job.seed, job.duration_s,
+                                      job.sensor, imu, gnss, on_scan=bar.tick, stamp=job.stamp)
     finally:
         bar.close()
     extra = "".join(f", {n} {what}" for n, what in ((summary.n_imu, "IMU samples"),
                                                        (summary.n_gnss, "GNSS fixes")) if n)
     return (f"simulated {summary.n_scans} scans ({summary.points_per_scan:.0f} points/scan, "
-            f"{summary.seconds_per_scan:.3f} s/scan{extra}) into {out}: handheld "
+            f"{summary.seconds_per_scan:.3f} s/scan{extra}) into {out}: {job.motion} "
             f"{job.world}, {st.distance_m:.0f} m, {st.laps:.2f} laps, max rate "
             f"{st.max_rate_dps:.0f} deg/s, max acceleration {st.max_accel_mps2:.1f} m/s^2")
 

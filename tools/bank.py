@@ -1,0 +1,517 @@
+"""The bank (issue 29): simulated sequences that vary what one simulator holds fixed, and every
+system run on every one of them, judged by the bank's median and its worst sequence.
+
+Usage: python tools/bank.py build --root /work/bank [--only NAME,...]
+       python tools/bank.py run --root /work/bank --out docs/benchmarks/DATE-bank.json
+              [--only NAME,...] [--systems lidar-slam,lidar-slam-lidar-only,rko-lio]
+              [--work DIR]
+       python tools/bank.py spec          (the bank as a markdown table)
+
+build simulates each sequence of BANK into ROOT/<name> with `lidar-slam simulate` (a fixed seed
+each; one already there, README.txt written, is kept). A row that needs a sensor or a simulate
+option this lidar-slam does not have (the sensors xt32 / os0-128 / mid360, --stamp,
+--imu-time-offset) is skipped with one line saying so.
+
+run runs each system (tools/benchmark.py's commands, timing and scoring) once on each built
+sequence, in WORK/<name>/<system> (default ROOT/runs), and writes OUT (JSON) and OUT with .md:
+the command, the bank's spec, then per system a row per sequence with the median and the worst
+row of every column. lidar-slam gets its own configuration overlay per sequence (the IMU's true
+extrinsic and clock offset: the overlay `simulate --imu-time-offset` writes beside the sequence
+when there is one, else imu.T_lidar_imu from the spec); rko_lio gets the same extrinsic, the IMU
+on the lidar clock, and its documented settings for the sensor (RKO_SPARSE, initialization at
+rest where the motion starts at rest).
+
+Columns: ATE (RMSE after rigid alignment, m) and worst frame (max, m); for lidar-slam the
+odometry-only ATE (odometry_kitti.txt, before loops) and final / odometry; loop stage precision
+(accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted), the loops the
+final solve kept (loops.csv's backend column) and the same precision over those; the mean
+NEES of keyframe positions (covariances.csv against the truth; 3 when consistent); frames/s,
+wall time (s) and peak RSS (MB) of the whole process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+if __package__ in (None, ""):  # run as a script: `tools` importable from the repository root
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from lidar_slam.errors import LidarSlamError  # noqa: E402
+from tools import benchmark  # noqa: E402
+
+KITTI_POSES = Path("/work/shared/data/kitti_gt/poses")
+SYSTEMS = ("lidar-slam", "lidar-slam-lidar-only", "rko-lio")
+LOOP_TRANS_M, LOOP_ROT_DEG = 0.3, 3.0
+# rko_lio's LIOConfig docs: "double_downsample ... Disabling for sparse LiDARs may improve
+# results"; the 16- and 32-beam spinners and the Livox pattern are the sparse ones here.
+RKO_SPARSE = ("vlp16", "xt32", "mid360")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One sequence of the bank: what it varies. poses: a KITTI sequence ("05") driven from
+    frame start (motion car) or None (a --motion walk / trot / flight); extrinsic: T_lidar_imu
+    as x, y, z (m), roll, pitch, yaw (deg); offset_s: --imu-time-offset (s); why: what it tests.
+    A walk's or trot's seed is one whose loop is walked more than 1.1 times (a revisit for the
+    loop stage; tests/test_bank.py checks it)."""
+
+    name: str
+    sensor: str
+    world: str
+    motion: str
+    stamp: str
+    extrinsic: tuple[float, float, float, float, float, float]
+    offset_s: float
+    duration_s: float
+    seed: int
+    why: str
+    poses: str | None = None
+    start: int = 0
+
+    @property
+    def at_rest(self) -> bool:
+        """Whether the sequence starts at rest (every motion but a car in a KITTI slice)."""
+        return self.motion != "car"
+
+
+ID = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+YAW90 = (0.05, -0.02, -0.08, 0.0, 0.0, 90.0)
+ROLL180 = (0.0, 0.03, -0.06, 180.0, 0.0, 0.0)
+TILT = (-0.04, 0.02, 0.03, 3.0, -2.0, 7.0)
+
+BANK: tuple[Spec, ...] = (
+    Spec("car00-hdl64", "hdl64", "streets", "car", "start", ID, 0.0, 40.0, 100,
+         "KITTI's own sensor and drive, every knob at home: the reference row", "00", 0),
+    Spec("car05-vlp16", "vlp16", "streets", "car", "start", YAW90, 0.0, 40.0, 101,
+         "16 beams on a car: sparse vertical geometry; IMU turned 90 deg", "05", 1200),
+    Spec("car08-xt32", "xt32", "streets", "car", "end", ROLL180, 0.02, 40.0, 102,
+         "stamp at sweep end, IMU upside down, its clock 20 ms behind", "08", 1000),
+    Spec("car07-os0", "os0-128", "streets", "car", "end", TILT, -0.02, 35.0, 103,
+         "wide-FOV dense sensor, short range; tilted IMU, its clock 20 ms ahead", "07", 300),
+    Spec("office-handheld-os1", "os1-64", "office", "handheld", "start", ID, 0.0, 40.0, 110,
+         "identical rooms and corridors: wrong loops look right", None),
+    Spec("office-handheld-mid360", "mid360", "office", "handheld", "start", TILT, 0.02, 40.0,
+         111, "non-repetitive pattern in aliasing corridors; tilted IMU, clock 20 ms behind",
+         None),
+    Spec("office-legged-xt32", "xt32", "office", "legged", "end", YAW90, 0.0, 45.0, 112,
+         "trot bounce and turns on the spot, 180 deg look-alikes; sweep-end stamps", None),
+    Spec("indoor-handheld-vlp16", "vlp16", "indoor", "handheld", "start", ROLL180, 0.0, 45.0,
+         473, "16 beams in a ring corridor and rooms: little vertical structure", None),
+    Spec("warehouse-legged-os1", "os1-64", "warehouse", "legged", "start", TILT, 0.0, 45.0,
+         374, "pillar grid and rack rows repeat every bay", None),
+    Spec("warehouse-handheld-xt32", "xt32", "warehouse", "handheld", "start", YAW90, -0.02,
+         45.0, 115, "fast hand-held bursts among repeating racks; IMU clock 20 ms ahead", None),
+    Spec("warehouse-drone-os1", "os1-64", "warehouse", "drone", "start", ROLL180, 0.0, 40.0,
+         116, "flight over and between racks under a low ceiling", None),
+    Spec("warehouse-drone-os0", "os0-128", "warehouse", "drone", "end", ID, -0.02, 40.0, 117,
+         "wide FOV in flight, stamps at sweep end, IMU clock 20 ms ahead", None),
+    Spec("plaza-drone-vlp16", "vlp16", "outdoor", "drone", "start", TILT, 0.0, 40.0, 118,
+         "sparse sensor climbing to 6 m over an open plaza: few close surfaces", None),
+    Spec("plaza-drone-mid360", "mid360", "outdoor", "drone", "end", YAW90, 0.0, 40.0, 119,
+         "non-repetitive pattern, yaw spins and tilts outdoors", None),
+    Spec("plaza-handheld-os0", "os0-128", "outdoor", "handheld", "end", ROLL180, 0.02, 35.0,
+         120, "hand-held in the open (0.6 of a lap: no loop), stamps at sweep end, IMU "
+         "clock 20 ms behind", None),
+)
+
+
+# ------------------------------------------------------------------------------- building
+
+
+def simulate_options() -> tuple[set[str], set[str]]:
+    """The sensors and the option flags this lidar-slam's `simulate` takes."""
+    import typer
+
+    import lidar_slam.cli  # noqa: F401  (registers the commands)
+    from lidar_slam.cli.common import app
+    from lidar_slam.sim.sensor import SENSORS
+
+    command = typer.main.get_command(app).commands["simulate"]
+    return set(SENSORS), {o for p in command.params for o in p.opts}
+
+
+def missing(spec: Spec, sensors: set[str], flags: set[str]) -> list[str]:
+    """What spec needs that this lidar-slam's simulate lacks (empty: it can be built)."""
+    out = [] if spec.sensor in sensors else [f"sensor {spec.sensor}"]
+    if spec.stamp != "start" and "--stamp" not in flags:
+        out.append("--stamp")
+    if spec.offset_s and "--imu-time-offset" not in flags:
+        out.append("--imu-time-offset")
+    return out
+
+
+def simulate_command(spec: Spec, root: Path) -> list[str]:
+    """The `lidar-slam simulate` command line that builds spec into root/<name>."""
+    rate = 10.0  # every sensor of the bank sweeps at 10 Hz
+    cmd = [sys.executable, "-m", "lidar_slam.cli", "simulate"]
+    if spec.poses is not None:
+        cmd += [str(KITTI_POSES / f"{spec.poses}.txt"), "--start", str(spec.start),
+                "--n-scans", str(int(round(spec.duration_s * rate)))]
+    else:
+        cmd += ["--motion", spec.motion, "--world", spec.world, "--duration-s",
+                f"{spec.duration_s:g}"]
+    cmd += ["--sensor", spec.sensor, "--seed", str(spec.seed), "--imu", "--imu-extrinsic",
+            ",".join(f"{v:g}" for v in spec.extrinsic), "--out", str(root / spec.name),
+            "--overwrite"]
+    if spec.stamp != "start":
+        cmd += ["--stamp", spec.stamp]
+    if spec.offset_s:
+        cmd += ["--imu-time-offset", f"{spec.offset_s:g}"]
+    return cmd
+
+
+def built(path: Path) -> bool:
+    """A finished sequence: simulate writes README.txt last."""
+    return (path / "README.txt").is_file() and (path / "imu.csv").is_file()
+
+
+def build(root: Path, only: set[str] | None) -> int:
+    """Simulate every sequence of the bank not yet in root; returns the number that failed."""
+    sensors, flags = simulate_options()
+    root.mkdir(parents=True, exist_ok=True)
+    log_path = root / "build.json"
+    log = json.loads(log_path.read_text()) if log_path.is_file() else {}
+    failed = 0
+    for spec in BANK:
+        if only and spec.name not in only:
+            continue
+        if built(root / spec.name):
+            print(f"{spec.name}: already built")
+            continue
+        lacking = missing(spec, sensors, flags)
+        if lacking:
+            print(f"{spec.name}: skipped, this lidar-slam simulate has no {', '.join(lacking)}")
+            continue
+        cmd = simulate_command(spec, root)
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        line = (proc.stdout.strip().splitlines() or [""])[-1]
+        if proc.returncode != 0:
+            failed += 1
+            print(f"{spec.name}: FAILED ({wall:.0f} s): {proc.stderr.strip()[-300:]}")
+            continue
+        print(f"{spec.name}: {wall:.0f} s: {line}", flush=True)
+        log[spec.name] = {"wall_s": round(wall, 1), "command": shlex.join(cmd), "line": line}
+        log_path.write_text(json.dumps(log, indent=2) + "\n")
+    return failed
+
+
+# -------------------------------------------------------------------------------- scoring
+
+
+def position_nees(poses: np.ndarray, gt: np.ndarray, covariances: dict[int, np.ndarray]
+                  ) -> np.ndarray:
+    """NEES of each keyframe's position: e' P^-1 e with e the truth's position minus the
+    estimate's in the keyframe's frame and P the translation block of its 6x6 covariance
+    (rotation first, as covariances.csv). poses, gt: (N, 4, 4) in the same (first frame's)
+    frame; covariances: {frame: 6x6}. Expected value 3 for a consistent estimate."""
+    out = []
+    for frame, cov in sorted(covariances.items()):
+        if frame >= len(poses):
+            continue
+        e = poses[frame, :3, :3].T @ (gt[frame, :3, 3] - poses[frame, :3, 3])
+        P = cov[3:, 3:]
+        out.append(float(e @ np.linalg.solve(P, e)))
+    return np.asarray(out)
+
+
+def backend_kept(loops_csv: Path) -> np.ndarray | None:
+    """Per accepted loop of a lidar-slam loops.csv (file order), whether the final solve kept
+    it (its `backend` column is not "rejected"); None without that column."""
+    import csv
+
+    with loops_csv.open(newline="") as fh:
+        rows = [r for r in csv.DictReader(fh)
+                if r["accepted"].strip().lower() in ("1", "true", "yes", "y")]
+    if rows and "backend" not in rows[0]:
+        return None
+    return np.array([r["backend"].strip() != "rejected" for r in rows], dtype=bool)
+
+
+def lidar_slam_extras(seq: benchmark.Sequence, out: Path) -> dict:
+    """Odometry-only ATE, final / odometry, loop precision at LOOP_TRANS_M / LOOP_ROT_DEG and
+    the keyframes' position NEES of one lidar-slam run folder."""
+    from lidar_slam.eval import metrics
+    from lidar_slam.io.trajectory import read_kitti_poses
+    from lidar_slam.run.outputs import read_covariances
+
+    res: dict = {}
+    final = read_kitti_poses(out / "poses_kitti.txt")
+    odom_path = out / "odometry_kitti.txt"
+    if odom_path.is_file() and seq.gt is not None:
+        odom = read_kitti_poses(odom_path)
+        if len(odom) == len(seq.gt) == len(final):
+            res["odom_ate_m"] = float(metrics.ate(odom, seq.gt).rmse_m)
+            res["final_over_odom"] = (float(metrics.ate(final, seq.gt).rmse_m)
+                                      / max(res["odom_ate_m"], 1e-9))
+    loops = out / "loops.csv"
+    if loops.is_file() and seq.gt is not None:
+        pairs, T = benchmark.lidar_slam_loops(loops, seq.start, seq.n)
+        res["loops_accepted"] = len(pairs)
+        kept = backend_kept(loops)
+        if kept is not None and len(kept) == len(pairs):
+            res["loops_kept"] = int(kept.sum())
+        if len(pairs) and T is not None:
+            s = metrics.loop_precision_recall(pairs, T, seq.gt, max_trans_err_m=LOOP_TRANS_M,
+                                              max_rot_err_deg=LOOP_ROT_DEG, max_dist_m=3.0)
+            res.update(loops_precise=s.n_correct, loop_precision=s.precision,
+                       loop_recall_events=s.recall_events)
+            if "loops_kept" in res and kept.any():
+                res["loop_precision_kept"] = float(s.correct[kept].mean())
+    cov = out / "covariances.csv"
+    if cov.is_file() and seq.gt is not None and len(final) == len(seq.gt):
+        nees = position_nees(final, seq.gt, read_covariances(cov))
+        if len(nees):
+            res.update(nees_mean=float(nees.mean()), nees_median=float(np.median(nees)),
+                       nees_keyframes=len(nees))
+    return res
+
+
+def ate_cells(row: benchmark.Row) -> dict:
+    m = row.metrics
+    return {"ate_m": m.get("ate_rmse_m"), "worst_frame_m": m.get("ate_max_m")}
+
+
+# -------------------------------------------------------------------------------- running
+
+
+def lidar_slam_config(spec: Spec, seq_path: Path, dest: Path) -> Path:
+    """The lidar-slam configuration overlay for spec: the one simulate wrote beside the
+    sequence (a *.yaml with an imu section in the sequence folder or <folder>.yaml next to it:
+    it knows its own offset's sign), else dest with imu.T_lidar_imu from the spec (no clock
+    offset: simulate had none to write)."""
+    import yaml
+
+    sibling = seq_path.with_name(seq_path.name + ".yaml")
+    for path in sorted(seq_path.glob("*.yaml")) + ([sibling] if sibling.is_file() else []):
+        if "imu" in (yaml.safe_load(path.read_text()) or {}):
+            return path
+    if spec.offset_s:
+        raise FileNotFoundError(f"{seq_path}: no config overlay with the IMU's clock offset "
+                                f"({spec.offset_s:+g} s) beside the sequence")
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_text(yaml.safe_dump({"imu": {"T_lidar_imu": list(spec.extrinsic),
+                                            "time_offset_s": 0.0}}))
+    return dest
+
+
+def rko_lio_settings(spec: Spec) -> dict:
+    """rko_lio's LIOConfig for spec's sensor (its documented knobs): the sensor's ranges,
+    double_downsample off for sparse sensors, initialization_phase where it starts at rest."""
+    from lidar_slam.sim.sensor import get_sensor
+
+    sensor = get_sensor(spec.sensor)
+    return {"min_range": float(sensor.min_range_m), "max_range": float(sensor.max_range_m),
+            "double_downsample": spec.sensor not in RKO_SPARSE,
+            "initialization_phase": spec.at_rest}
+
+
+def run_sequence(spec: Spec, seq_path: Path, work: Path, systems: list[str]) -> dict:
+    """Every system once on one built sequence; {system: cells} (see COLUMNS)."""
+    seq_dir = work / spec.name
+    seq_dir.mkdir(parents=True, exist_ok=True)
+    config = lidar_slam_config(spec, seq_path, seq_dir / "lidar-slam-config.yaml")
+    seq = benchmark.load_sequence(str(seq_path), 0, None, {seq_path.name: config})
+    gt_file, gt_end_file = benchmark.write_truth_files(seq, seq_dir)
+    rows = {s: benchmark.Row(seq.name, s, seq.n) for s in systems}
+    if "rko-lio" in rows:
+        benchmark.prepare_rko_lio(rows, seq, seq_dir, rko_lio_settings(spec))
+    benchmark.warm_page_cache(seq.path)
+    out = {}
+    for s, row in rows.items():
+        benchmark.run_once(row, seq, seq_dir, "")
+        if not row.error and not row.skipped:
+            benchmark.evaluate_row(row, seq, seq_dir / s,
+                                   gt_file if s in benchmark.OURS else gt_end_file)
+        cells = {"frames": row.frames, "error": row.error, "skipped": row.skipped,
+                 "notes": row.notes, **ate_cells(row), "fps": row.fps,
+                 "wall_s": row.wall_s[-1] if row.wall_s else None,
+                 "peak_mb": max(row.peak_mb) if row.peak_mb else None}
+        if s in benchmark.OURS and not row.error:
+            cells.update(lidar_slam_extras(seq, seq_dir / s))
+        out[s] = cells
+    return out
+
+
+# Columns of a system's table: key, header, digits, which way is worse ("high", "low", or
+# "nees": away from 3 either way), and whether only lidar-slam's runs have it.
+COLUMNS = (("ate_m", "ATE m", 3, "high", False), ("worst_frame_m", "worst frame m", 3, "high",
+                                                  False),
+           ("odom_ate_m", "odometry ATE m", 3, "high", True),
+           ("final_over_odom", "final / odometry", 2, "high", True),
+           ("loops_accepted", "loops", 0, None, True),
+           ("loop_precision", f"loop precision ({LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg)", 2,
+            "low", True),
+           ("loops_kept", "loops kept", 0, None, True),
+           ("loop_precision_kept", "precision of kept", 2, "low", True),
+           ("nees_mean", "NEES (3)", 1, "nees", True),
+           ("fps", "frames/s", 1, "low", False), ("wall_s", "wall s", 1, "high", False),
+           ("peak_mb", "peak MB", 0, "high", False))
+
+
+def columns(system: str) -> list[tuple]:
+    return [c for c in COLUMNS if system in benchmark.OURS or not c[4]]
+
+
+def median_and_worst(values: dict[str, float | None], worse: str | None
+                     ) -> tuple[float | None, float | None, str | None]:
+    """The median of the numbers among values ({sequence: value}), the worst one and where."""
+    have = {k: v for k, v in values.items() if v is not None}
+    if not have:
+        return None, None, None
+    med = float(statistics.median(have.values()))
+    if worse is None:
+        return med, None, None
+    key = {"high": lambda kv: kv[1], "low": lambda kv: -kv[1],
+           "nees": lambda kv: abs(np.log(max(kv[1], 1e-12) / 3.0))}[worse]
+    name, value = max(have.items(), key=key)
+    return med, float(value), name
+
+
+def _fmt(value, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def spec_table(status: dict[str, str] | None = None) -> str:
+    """The bank as a markdown table, with each sequence's status when given."""
+    head = ["sequence", "sensor", "world", "motion", "stamp", "IMU x,y,z m / r,p,y deg",
+            "IMU offset ms", "s", "seed", "varies"]
+    if status is not None:
+        head.append("status")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for s in BANK:
+        world = f"streets (KITTI {s.poses} from {s.start})" if s.poses else s.world
+        ext = ",".join(f"{v:g}" for v in s.extrinsic[:3]) + " / " + ",".join(
+            f"{v:g}" for v in s.extrinsic[3:])
+        cells = [s.name, s.sensor, world, s.motion, s.stamp, ext, f"{1000 * s.offset_s:+.0f}",
+                 f"{s.duration_s:g}", str(s.seed), s.why]
+        if status is not None:
+            cells.append(status.get(s.name, ""))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def system_table(system: str, results: dict[str, dict]) -> tuple[str, dict]:
+    """One system's markdown table (a row per sequence, then median and worst) and its
+    summary {column: {median, worst, worst_sequence}}."""
+    cols = columns(system)
+    head = ["sequence"] + [c[1] for c in cols]
+    lines = [f"### {benchmark.LABELS[system]}", "", "| " + " | ".join(head) + " |",
+             "|" + "---|" * len(head)]
+    for name, by_system in results.items():
+        r = by_system.get(system)
+        if r is None:
+            continue
+        if r["error"] or r["skipped"]:
+            lines.append(f"| {name} | {r['error'] or r['skipped']} |" + " |" * (len(cols) - 1))
+            continue
+        lines.append("| " + " | ".join([name] + [_fmt(r.get(c[0]), c[2]) for c in cols]) + " |")
+    summary, med_row, worst_row = {}, ["**median**"], ["**worst**"]
+    for key, _, digits, worse, _ in cols:
+        values = {n: (b.get(system) or {}).get(key) for n, b in results.items()
+                  if system in b and not b[system]["error"] and not b[system]["skipped"]}
+        med, worst, where = median_and_worst(values, worse)
+        summary[key] = {"median": med, "worst": worst, "worst_sequence": where}
+        med_row.append(_fmt(med, digits))
+        worst_row.append("-" if where is None else f"{_fmt(worst, digits)} ({where})")
+    lines += ["| " + " | ".join(med_row) + " |", "| " + " | ".join(worst_row) + " |", ""]
+    return "\n".join(lines) + "\n", summary
+
+
+def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | None,
+        argv: list[str]) -> int:
+    """Every system on every built sequence; writes out (JSON) and out.with_suffix('.md')."""
+    results: dict[str, dict] = {}
+    status: dict[str, str] = {}
+    timing: dict[str, float] = {}
+    for spec in BANK:
+        if only and spec.name not in only:
+            continue
+        path = root / spec.name
+        if not built(path):
+            status[spec.name] = "not built"
+            print(f"{spec.name}: not built under {root}, skipped")
+            continue
+        t0 = time.perf_counter()
+        try:
+            results[spec.name] = run_sequence(spec, path, work, systems)
+        except (FileNotFoundError, LidarSlamError) as exc:
+            status[spec.name] = f"failed: {exc}"
+            print(f"{spec.name}: {exc}")
+            continue
+        timing[spec.name] = round(time.perf_counter() - t0, 1)
+        status[spec.name] = "run"
+        print(f"{spec.name}: all systems in {timing[spec.name]:.0f} s", flush=True)
+    command = "python tools/bank.py " + shlex.join(argv)
+    meta = {"command": command, "date": datetime.datetime.now().isoformat(timespec="seconds"),
+            "commit": benchmark.git_commit(), "cpus": os.cpu_count(),
+            "systems": systems, "root": str(root), "seconds_per_sequence": timing}
+    md = [f"# Bank run {meta['date'][:10]}", "", f"`{command}`", "",
+          f"commit {meta['commit']}, {meta['cpus']} CPUs, one run per (sequence, system); "
+          "ATE: RMSE after rigid alignment; worst frame: the largest aligned error; loop "
+          f"precision: accepted loops within {LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg of the "
+          "truth over accepted; NEES: mean over keyframes of the position error's "
+          "e' P^-1 e (3 when the covariances are consistent); frames/s, wall, peak MB: the "
+          "whole process.", "", "## The bank", "", spec_table(status)]
+    summaries = {}
+    md.append("## Results\n")
+    for system in systems:
+        table, summaries[system] = system_table(system, results)
+        md.append(table)
+    notes = [f"- {n} / {s}: {note}" for n, b in results.items() for s, r in b.items()
+             for note in r["notes"]]
+    if notes:
+        md += ["## Notes", ""] + notes + [""]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({**meta, "spec": [asdict(s) for s in BANK], "status": status,
+                               "results": results, "summary": summaries}, indent=2) + "\n")
+    out.with_suffix(".md").write_text("\n".join(md))
+    print(f"wrote {out} and {out.with_suffix('.md')}")
+    return 1 if any(r["error"] for b in results.values() for r in b.values()) else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="action", required=True)
+    b = sub.add_parser("build", help="simulate the bank's sequences not yet built")
+    r = sub.add_parser("run", help="run every system on every built sequence")
+    sub.add_parser("spec", help="print the bank as a markdown table")
+    for p in (b, r):
+        p.add_argument("--root", type=Path, required=True, help="the bank's folder")
+        p.add_argument("--only", default="", help="comma-separated sequence names")
+    r.add_argument("--out", type=Path, required=True, help="JSON to write (and .md beside)")
+    r.add_argument("--systems", default=",".join(SYSTEMS), help=f"subset of {SYSTEMS}")
+    r.add_argument("--work", type=Path, default=None, help="run folders (default ROOT/runs)")
+    args = ap.parse_args(argv)
+    if args.action == "spec":
+        print(spec_table(), end="")
+        return 0
+    only = {n.strip() for n in args.only.split(",") if n.strip()} or None
+    unknown = sorted((only or set()) - {s.name for s in BANK})
+    if unknown:
+        sys.exit(f"--only: no sequence named {unknown} in the bank")
+    if args.action == "build":
+        return 1 if build(args.root, only) else 0
+    systems = [s.strip() for s in args.systems.split(",") if s.strip()]
+    if set(systems) - set(SYSTEMS):
+        sys.exit(f"--systems: choose from {SYSTEMS}")
+    systems = [s for s in systems if benchmark.available(s)]
+    return run(args.root, args.out, args.work or args.root / "runs", systems, only, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
