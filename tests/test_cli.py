@@ -426,8 +426,8 @@ def test_two_runs_with_an_imu_write_identical_files(tmp_path):
     import dataclasses
 
     from lidar_slam.sim import SENSORS
-    from lidar_slam.sim.motions import simulate_handheld
     from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.motions import simulate_handheld
 
     walk = tmp_path / "walk"
     simulate_handheld(walk, "outdoor", 3, 2.5, dataclasses.replace(SENSORS["os1-64"],
