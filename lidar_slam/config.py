@@ -202,7 +202,7 @@ class OdometryInformationConfig(_Section):
     # The residual's RMS is taken as at least this (m): sensor noise and the clouds' 0.5 m voxel
     # centroids leave more than this on any real surface.
     min_residual_m: Positive = 0.01
-    # Floors: no direction more certain than these 1-sigmas (the matrix scaled down uniformly).
+    # Floors: 1-sigmas added to every edge's measured covariance, so no direction is surer.
     min_trans_sigma_m: Positive = 0.005
     min_rot_sigma_deg: Positive = 0.1
 

@@ -67,7 +67,7 @@ class EdgeInformation:
             return None
         c = self.cfg
         target = PlaneTarget(prev[1], self.cloud_voxel_m, 0, c.max_correspondence_m)
-        source = voxel_centroids(self._prev[1], c.cell_m)
+        source = voxel_centroids(self._prev[1], c.cell_m)  # this keyframe's cloud
         fit = plane_fit(target, source, relative(prev[0], T_world_kf), c.max_correspondence_m,
                         c.min_residual_m)
         if fit.n < MIN_RESIDUALS:
