@@ -4,7 +4,7 @@ system run on every one of them, judged by the bank's median and its worst seque
 Usage: python tools/bank.py build --root /work/bank [--only NAME,...]
        python tools/bank.py run --root /work/bank --out docs/benchmarks/DATE-bank.json
               [--only NAME,...] [--systems lidar-slam,lidar-slam-lidar-only,rko-lio]
-              [--work DIR]
+              [--work DIR] [--config VARIANT.yaml]
        python tools/bank.py spec          (the bank as a markdown table)
 
 build simulates each sequence of BANK into ROOT/<name> with `lidar-slam simulate` (a fixed seed
@@ -288,24 +288,41 @@ def ate_cells(row: benchmark.Row) -> dict:
 # -------------------------------------------------------------------------------- running
 
 
-def lidar_slam_config(spec: Spec, seq_path: Path, dest: Path) -> Path:
+def lidar_slam_config(spec: Spec, seq_path: Path, dest: Path, variant: Path | None = None
+                      ) -> Path:
     """The lidar-slam configuration overlay for spec: the one simulate wrote beside the
     sequence (a *.yaml with an imu section in the sequence folder or <folder>.yaml next to it:
     it knows its own offset's sign), else dest with imu.T_lidar_imu from the spec (no clock
-    offset: simulate had none to write)."""
+    offset: simulate had none to write). variant: a YAML overlay of settings under test,
+    merged over it (section by section) into dest."""
     import yaml
 
+    found = None
     sibling = seq_path.with_name(seq_path.name + ".yaml")
     for path in sorted(seq_path.glob("*.yaml")) + ([sibling] if sibling.is_file() else []):
         if "imu" in (yaml.safe_load(path.read_text()) or {}):
-            return path
-    if spec.offset_s:
+            found = path
+            break
+    if found is None and spec.offset_s:
         raise FileNotFoundError(f"{seq_path}: no config overlay with the IMU's clock offset "
                                 f"({spec.offset_s:+g} s) beside the sequence")
+    if found is not None and variant is None:
+        return found
+    base = (yaml.safe_load(found.read_text()) if found is not None else
+            {"imu": {"T_lidar_imu": list(spec.extrinsic), "time_offset_s": 0.0}})
+    for section, values in (yaml.safe_load(variant.read_text()) if variant else {}).items():
+        _merge(base.setdefault(section, {}), values)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    dest.write_text(yaml.safe_dump({"imu": {"T_lidar_imu": list(spec.extrinsic),
-                                            "time_offset_s": 0.0}}))
+    dest.write_text(yaml.safe_dump(base))
     return dest
+
+
+def _merge(into: dict, values: dict) -> None:
+    for key, value in values.items():
+        if isinstance(value, dict) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = value
 
 
 def rko_lio_settings(spec: Spec) -> dict:
@@ -319,11 +336,12 @@ def rko_lio_settings(spec: Spec) -> dict:
             "initialization_phase": spec.at_rest}
 
 
-def run_sequence(spec: Spec, seq_path: Path, work: Path, systems: list[str]) -> dict:
+def run_sequence(spec: Spec, seq_path: Path, work: Path, systems: list[str],
+                 variant: Path | None = None) -> dict:
     """Every system once on one built sequence; {system: cells} (see COLUMNS)."""
     seq_dir = work / spec.name
     seq_dir.mkdir(parents=True, exist_ok=True)
-    config = lidar_slam_config(spec, seq_path, seq_dir / "lidar-slam-config.yaml")
+    config = lidar_slam_config(spec, seq_path, seq_dir / "lidar-slam-config.yaml", variant)
     seq = benchmark.load_sequence(str(seq_path), 0, None, {seq_path.name: config})
     gt_file, gt_end_file = benchmark.write_truth_files(seq, seq_dir)
     rows = {s: benchmark.Row(seq.name, s, seq.n) for s in systems}
@@ -432,7 +450,7 @@ def system_table(system: str, results: dict[str, dict]) -> tuple[str, dict]:
 
 
 def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | None,
-        argv: list[str]) -> int:
+        argv: list[str], variant: Path | None = None) -> int:
     """Every system on every built sequence; writes out (JSON) and out.with_suffix('.md')."""
     results: dict[str, dict] = {}
     status: dict[str, str] = {}
@@ -447,7 +465,7 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
             continue
         t0 = time.perf_counter()
         try:
-            results[spec.name] = run_sequence(spec, path, work, systems)
+            results[spec.name] = run_sequence(spec, path, work, systems, variant)
         except (FileNotFoundError, LidarSlamError) as exc:
             status[spec.name] = f"failed: {exc}"
             print(f"{spec.name}: {exc}")
@@ -496,6 +514,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--out", type=Path, required=True, help="JSON to write (and .md beside)")
     r.add_argument("--systems", default=",".join(SYSTEMS), help=f"subset of {SYSTEMS}")
     r.add_argument("--work", type=Path, default=None, help="run folders (default ROOT/runs)")
+    r.add_argument("--config", type=Path, default=None,
+                   help="a lidar-slam YAML overlay under test, merged over each sequence's")
     args = ap.parse_args(argv)
     if args.action == "spec":
         print(spec_table(), end="")
@@ -510,7 +530,8 @@ def main(argv: list[str] | None = None) -> int:
     if set(systems) - set(SYSTEMS):
         sys.exit(f"--systems: choose from {SYSTEMS}")
     systems = [s for s in systems if benchmark.available(s)]
-    return run(args.root, args.out, args.work or args.root / "runs", systems, only, argv)
+    return run(args.root, args.out, args.work or args.root / "runs", systems, only, argv,
+               args.config)
 
 
 if __name__ == "__main__":
