@@ -141,8 +141,9 @@ class OusterPcapSource:
     def __len__(self) -> int:
         return len(self.stamps)
 
-    def _packets_and_frames(self) -> Iterator:
-        """Every finished LidarFrame and, per IMU packet, its (M, 7) imu.csv rows, in file order."""
+    def _packets_and_frames(self, imu: bool = True) -> Iterator:
+        """Every finished LidarFrame and (with `imu`), per IMU packet, its (M, 7) imu.csv rows, in
+        file order."""
         core, pcap = _sdk(self.path)
         try:
             source = pcap.PcapPacketSource(str(self.path), sensor_info=[self.info])
@@ -153,7 +154,8 @@ class OusterPcapSource:
         try:
             for _, packet in source:
                 if isinstance(packet, core.ImuPacket):
-                    yield _imu_rows(packet)
+                    if imu:
+                        yield _imu_rows(packet)
                 elif isinstance(packet, core.LidarPacket) and batcher.batch(packet, frame):
                     yield frame
                     frame = core.LidarFrame(self.info)
@@ -174,9 +176,7 @@ class OusterPcapSource:
         core, _ = _sdk(self.path)
         lut = core.XYZLut(self.info)
         index, last = 0, -np.inf
-        for item in self._packets_and_frames():
-            if isinstance(item, np.ndarray):
-                continue
+        for item in self._packets_and_frames(imu=False):
             stamp_ns = self._stamp_ns(item)
             if stamp_ns is None or stamp_ns * 1e-9 <= last:
                 continue
