@@ -85,7 +85,7 @@ class SimPcap:
 @pytest.fixture(scope="module")
 def sim_ouster(tmp_path_factory) -> SimPcap:
     """3 s of `simulate --motion handheld --world indoor --seed 0 --imu` (OS1-64, BMI088 IMU at
-    200 Hz, 1 cm off the lidar) written by ouster-sdk as an Ouster pcap (tests/pcap_writers.py):
+    200 Hz, 1.5 cm off the lidar) written by ouster-sdk as an Ouster pcap (tests/pcap_writers.py):
     30 frames of 64 lidar packets and 601 legacy IMU packets, ~25 MB, written in ~2 s."""
     _needs("ouster.sdk")
     from pcap_writers import write_ouster_pcap
