@@ -234,7 +234,7 @@ def test_velodyne_sim_pcap_decodes_to_the_simulated_returns(sim_vlp16):
 
     capture = sim_vlp16.capture
     source = open_source(sim_vlp16.pcap)
-    # a sweep ends with the packet that crosses azimuth 0: 76 packets of 1.327 ms, 0.10086 s
+    # the decoder cuts whole packets: a sweep of 76 packets of 1.327 ms lasts 0.10086 s
     assert len(source) == 20 and np.allclose(np.diff(source.stamps)[:-1], 0.1, atol=1.4e-3)
     points, times = [], []
     for scan in source.scans():
