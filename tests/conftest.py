@@ -1,5 +1,11 @@
 """Shared fixtures. Tests that read ../shared/data skip with a reason where it is absent, unless
-LIDAR_SLAM_REQUIRE_SHARED=1 (set by .ci/run), where its absence is a failure."""
+LIDAR_SLAM_REQUIRE_SHARED=1 (set by .ci/run), where its absence is a failure.
+
+The exception: the public sensor pcaps (`public_captures`, marker of the same name) are fetched
+data that CI's ../shared does not hold (shared/data/pcaps/README.txt says where they come from):
+their tests skip with a reason wherever the folder is absent, CI included. Point
+LIDAR_SLAM_PCAPS at another folder of them (or LIDAR_SLAM_SHARED_DATA at a shared/data holding
+pcaps/) to run them; CI tests the pcap readers on pcaps written at test time instead."""
 
 from __future__ import annotations
 
@@ -25,6 +31,20 @@ def shared_path(*parts: str) -> Path:
             pytest.fail(msg)
         pytest.skip(msg)
     return p
+
+
+PUBLIC_PCAPS = Path(os.environ.get("LIDAR_SLAM_PCAPS", SHARED_DATA / "pcaps"))
+
+
+@pytest.fixture
+def public_captures() -> Path:
+    """The folder of public sensor pcaps (LIDAR_SLAM_PCAPS, else ../shared/data/pcaps); the
+    test skips when it is absent, even under LIDAR_SLAM_REQUIRE_SHARED=1 (see the docstring).
+    Tests using it carry the `public_captures` marker (-m "not public_captures" leaves them)."""
+    if not PUBLIC_PCAPS.is_dir():
+        pytest.skip(f"public sensor pcaps not found: {PUBLIC_PCAPS} (fetched data, not in CI: "
+                    "set LIDAR_SLAM_PCAPS to a copy; its README.txt names the sources)")
+    return PUBLIC_PCAPS
 
 
 @pytest.fixture

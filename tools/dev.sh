@@ -2,7 +2,8 @@
 # One-command setup for a fresh machine (Python >= 3.10 with venv; no root, no apt needed:
 # open3d's missing libusb-1.0.so.0 is supplied by the libusb-package wheel at import time).
 #   bash tools/dev.sh demo   install into .venv and run lidar-slam on sample_scans/ -> runs/sample
-#   bash tools/dev.sh test   install with the test and cluster (Ray) extras and run the test suite
+#   bash tools/dev.sh test   install with the test, cluster (Ray) and pcap extras (and ouster-sdk,
+#                            without its pins: pyproject.toml says why) and run the test suite
 #   bash tools/dev.sh lint   install with the test extra and run ruff (the rules: pyproject.toml)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,7 +21,8 @@ case "$cmd" in
     "$VENV/bin/lidar-slam" run sample_scans --out runs/sample --overwrite "$@"
     ;;
   test)
-    "$VENV/bin/python" -m pip install -q -e ".[test,cluster]"
+    "$VENV/bin/python" -m pip install -q -e ".[test,cluster,pcap]"
+    "$VENV/bin/python" -m pip install -q --no-deps "ouster-sdk==1.0.1"
     "$VENV/bin/python" -m pytest -q "$@"
     ;;
   lint)

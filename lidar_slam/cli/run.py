@@ -14,12 +14,14 @@ from lidar_slam.cli.common import app, reports_errors, summary_table
 @reports_errors
 def run(
     data: Path = typer.Argument(..., help="Folder of scans, one scan file, KITTI sequence, KITTI "
-                                          "raw drive, or rosbag/mcap."),
+                                          "raw drive, rosbag/mcap, or sensor .pcap."),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder to write."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config overlay."),
     start: int = typer.Option(0, "--start", min=0, help="First scan (0-based)."),
     n_scans: Optional[int] = typer.Option(None, "--n-scans", min=1, help="Number of scans."),
     topic: Optional[str] = typer.Option(None, "--topic", help="PointCloud2 topic of a bag."),
+    meta: Optional[Path] = typer.Option(None, "--meta", help="Ouster pcap: the sensor metadata "
+                                        "JSON (default: the pcap's name with .json)."),
     imu_topic: Optional[str] = typer.Option(None, "--imu-topic",
                                             help="sensor_msgs/Imu topic of a bag."),
     gnss_topic: Optional[str] = typer.Option(None, "--gnss-topic",
@@ -38,12 +40,12 @@ def run(
     """Run SLAM on DATA and write poses, map, config and summary into --out.
 
     DATA: a folder of scans (.bin/.pcd/.ply/.npy), one scan file, a KITTI sequence or raw
-    drive, or a rosbag (.bag, ROS2 bag folder, .mcap).
+    drive, a rosbag (.bag, ROS2 bag folder, .mcap), or an Ouster / Velodyne .pcap.
     """
     from lidar_slam.run.runner import run_sequence
 
     outcome = run_sequence(data, out, config=config, start=start, n_scans=n_scans, topic=topic,
-                           imu_topic=imu_topic, gnss_topic=gnss_topic,
+                           imu_topic=imu_topic, gnss_topic=gnss_topic, meta=meta,
                            overrides=run_overrides(no_loops, no_deskew, no_imu, no_gnss),
                            viz=viz, rrd=rrd,
                            overwrite=overwrite, resume=resume)

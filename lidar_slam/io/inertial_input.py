@@ -26,6 +26,19 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class SensorStreams:
+    """The IMU and GNSS a recording carries beside its scans (a sensor pcap: one file, one
+    clock), the IMU's mounting from the sensor's own metadata (T_lidar_imu, 4x4 m, or None), and
+    why a stream is absent (summary.json)."""
+
+    imu: ImuSamples | None
+    gnss: GnssFixes | None
+    T_lidar_imu: np.ndarray | None = None
+    why_no_imu: str = "the recording carries no IMU"
+    why_no_gnss: str = "the recording carries no GNSS"
+
+
+@dataclass(frozen=True)
 class InertialInput:
     """The IMU samples and GNSS fixes of a run (None when not used), on the scans' clock (the
     config's time offsets applied), and what summary.json says of each ("imu", "gnss")."""
@@ -45,12 +58,15 @@ def _folder_stream(data: Path, name: str, reader, what: str):
 
 def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_enabled: bool,
                   gnss_enabled: bool, imu_offset_s: float = 0.0, gnss_offset_s: float = 0.0,
-                  imu_topic: str | None = None, gnss_topic: str | None = None) -> InertialInput:
+                  imu_topic: str | None = None, gnss_topic: str | None = None,
+                  carried: SensorStreams | None = None) -> InertialInput:
     """Read the IMU and GNSS of an input: imu.csv / gnss.csv beside a folder's scans (or in its
     scans/ subfolder), or the sensor_msgs/Imu and NavSatFix topics of a bag (picked like the
     PointCloud2 topic, or named). scan_stamps (s) are checked against the streams' stamps (see
     check_overlap); a bag topic picked without being named that does not overlap them is not
-    used (a warning, and the reason in the summary) instead of stopping the run."""
+    used (a warning, and the reason in the summary) instead of stopping the run. `carried`: the
+    streams of a recording that holds its own (a sensor pcap), used instead of looking beside it;
+    like a bag topic picked unasked, one that does not overlap the scans is left out."""
     is_bag = kind == "rosbag"
     for flag, value, enabled in (("--imu-topic", imu_topic, imu_enabled),
                                  ("--gnss-topic", gnss_topic, gnss_enabled)):
@@ -66,6 +82,9 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
                                     ("gnss", gnss_enabled, gnss_offset_s)):
         if not enabled:
             stream, why = None, f"off (--no-{what} or {what}.enabled: false)"
+        elif carried is not None:
+            stream = carried.imu if what == "imu" else carried.gnss
+            why = carried.why_no_imu if what == "imu" else carried.why_no_gnss
         elif is_bag:
             from lidar_slam.io import rosbag  # rosbags only when reading a bag
 
@@ -84,7 +103,7 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
         if scan_stamps is not None and len(scan_stamps):
             span = float(scan_stamps[0]), float(scan_stamps[-1])
             problem = overlap_problem(stream.stamp_s, *span, label)
-            if problem is not None and is_bag and topics[what] is None:
+            if problem is not None and (carried is not None or is_bag and topics[what] is None):
                 # A topic picked without being asked for (e.g. an Ouster's own IMU stamped by
                 # the sensor's clock) must not stop a run that can go on without it.
                 log.warning("%s: not used: %s; --no-%s silences this", stream.source, problem,

@@ -644,6 +644,7 @@ class RosbagSource:
     """
 
     kind = "rosbag"
+    sensor_streams = None  # the IMU / GNSS topics are read by io.inertial_input.load_inertial
 
     def __init__(self, path: str | Path, topic: str | None = None):
         self.path = Path(path)

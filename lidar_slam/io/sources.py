@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.inertial_input import SensorStreams
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, read_bin, read_cloud
 from lidar_slam.io.trajectory import (
@@ -37,6 +38,9 @@ class ScanSource(Protocol):
     topic: str | None  # the bag topic read, None for other inputs
     ground_truth: np.ndarray | None
     stamps: np.ndarray  # stamp (s) of every input scan, as Scan.stamp_s
+    # IMU / GNSS / T_lidar_imu read from the same file as the scans (sensor pcaps); None: found
+    # beside the scans or in the bag by io.inertial_input.load_inertial
+    sensor_streams: SensorStreams | None
 
     @property
     def input_notes(self) -> dict[str, int]: ...  # what was dropped or recovered (summary.json)
@@ -106,6 +110,7 @@ class FolderSource:
     """
 
     topic = None
+    sensor_streams = None
 
     def __init__(self, root: Path):
         self.root = root
@@ -156,7 +161,7 @@ class KittiSource:
     per-point times (s, relative to the scan stamp) for simulated sequences.
     """
 
-    kind, topic = "kitti", None
+    kind, topic, sensor_streams = "kitti", None, None
 
     def __init__(self, root: Path, vertical_correction: bool = False):
         self.root = root
@@ -238,7 +243,7 @@ class KittiRawSource:
     drive folder or its velodyne_points folder). No ground truth (the raw drives' OXTS poses are
     not read)."""
 
-    kind, topic = "kitti_raw", None
+    kind, topic, sensor_streams = "kitti_raw", None, None
 
     def __init__(self, root: Path, vertical_correction: bool = False):
         self.root = root
@@ -294,10 +299,11 @@ def correct_kitti_scan(points: np.ndarray, angle_deg: float = 0.205) -> np.ndarr
     return out
 
 
-def open_source(path: str | Path, topic: str | None = None, kitti_vertical_correction: bool = False
-                ) -> ScanSource:
-    """Pick the reader for a path: rosbag/mcap, KITTI sequence, KITTI raw drive, a folder of
-    scans or one scan file. `topic` only applies to bags (a warning otherwise)."""
+def open_source(path: str | Path, topic: str | None = None, kitti_vertical_correction: bool = False,
+                meta: Path | None = None) -> ScanSource:
+    """Pick the reader for a path: rosbag/mcap, sensor pcap (`meta`: an Ouster's metadata JSON),
+    KITTI sequence, KITTI raw drive, a folder of scans or one scan file. `topic` only applies to
+    bags (a warning otherwise)."""
     p = Path(path)
     if not p.exists():
         raise InputError(p, "does not exist")
@@ -308,6 +314,12 @@ def open_source(path: str | Path, topic: str | None = None, kitti_vertical_corre
         return RosbagSource(p, topic=topic)
     if topic is not None:
         log.warning("--topic %s ignored: %s is not a rosbag", topic, p)
+    if p.suffix.lower() == ".pcap":
+        from lidar_slam.io.pcap import open_pcap
+
+        return open_pcap(p, meta)
+    if meta is not None:
+        log.warning("--meta %s ignored: %s is not a pcap", meta, p)
     if p.is_file():
         if p.suffix.lower() in SCAN_SUFFIXES:
             return FolderSource(p)

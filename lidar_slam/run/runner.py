@@ -157,7 +157,18 @@ def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: s
     return load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
                          gnss_enabled=cfg.gnss.enabled, imu_offset_s=cfg.imu.time_offset_s,
                          gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
-                         gnss_topic=gnss_topic)
+                         gnss_topic=gnss_topic, carried=source.sensor_streams)
+
+
+def _sensor_mounting(cfg, source):
+    """The config with imu.T_lidar_imu from the recording's own metadata (an Ouster pcap's
+    imu_to_sensor_transform) when the config does not set it: a config value always wins."""
+    streams = source.sensor_streams
+    if streams is None or streams.T_lidar_imu is None or "T_lidar_imu" in cfg.imu.model_fields_set:
+        return cfg
+    values = [round(float(v), 9) + 0.0 for v in streams.T_lidar_imu.ravel()]
+    imu = cfg.imu.model_copy(update={"T_lidar_imu": values})
+    return cfg.model_copy(update={"imu": imu})
 
 
 @dataclass
@@ -188,6 +199,7 @@ def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
 def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: int = 0,
                  n_scans: int | None = None, topic: str | None = None,
                  imu_topic: str | None = None, gnss_topic: str | None = None,
+                 meta: Path | None = None,
                  overrides: dict | None = None, viz: bool = False, rrd: Path | None = None,
                  overwrite: bool = False, resume: bool = False,
                  progress: bool = True) -> RunOutcome:
@@ -205,11 +217,17 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
 
     cfg = load_config(config, overrides)
     source = open_source(data, topic=topic,
-                         kitti_vertical_correction=cfg.data.kitti_vertical_correction)
+                         kitti_vertical_correction=cfg.data.kitti_vertical_correction, meta=meta)
     total = scan_range(data, start, n_scans, len(source))
-    inertial = _load_inertial(data, source, cfg, imu_topic, gnss_topic)
+    own_mounting = _sensor_mounting(cfg, source)
+    inertial = _load_inertial(data, source, own_mounting, imu_topic, gnss_topic)
+    if own_mounting is not cfg and inertial.imu is not None:
+        inertial.summary["imu"]["T_lidar_imu_from"] = "the sensor's metadata"
+    cfg = own_mounting
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
+    if meta is not None:
+        identity["meta"] = str(Path(meta).resolve())
     resuming = _resuming(out, identity, overwrite, resume)
     visualizer = open_viewer(viz, rrd)
     t0 = time.perf_counter()
