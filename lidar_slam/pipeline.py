@@ -22,7 +22,7 @@ from lidar_slam.frontend.edge_information import EdgeInformation
 from lidar_slam.frontend.keyframes import KeyframeSelector
 from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geo import GeoReference
-from lidar_slam.geometry import inverse, transform_points
+from lidar_slam.geometry import interpolate, inverse, transform_points
 from lidar_slam.loop import adapt
 from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import Scan
@@ -72,13 +72,36 @@ class RunResult:
     T_gravity_map: np.ndarray | None = None
     gnss_fixes: list = field(default_factory=list)  # FixReport per input fix (gnss_fixes.csv)
     inertial_summary: dict = field(default_factory=dict)  # merged into summary.json imu / gnss
+    # frames placed by the final solve with the IMU (position in the run -> T_world_lidar at
+    # the frame's stamp); the others move with their keyframes (final_poses)
+    frame_poses: dict[int, np.ndarray] = field(default_factory=dict)
 
     def final_poses(self) -> np.ndarray:
-        """Every frame's pose, moved with its keyframe's optimised pose (K, 4, 4)."""
-        out = np.empty((len(self.odom_poses), 4, 4))
-        for i, (T_odom, kf_id) in enumerate(zip(self.odom_poses, self.frame_kf)):
-            T_kf_odom = self.store.T_world_kf_odom(kf_id)
-            out[i] = self.kf_poses[kf_id] @ inverse(T_kf_odom) @ T_odom
+        """Every frame's pose (K, 4, 4): its odometry moved by the correction (optimised pose
+        less odometry) of the keyframe it hangs off and of the next one, blended by its stamp
+        between theirs. A keyframe's own frame gets exactly the keyframe's pose; one moved
+        by its own keyframe alone would jump at the next (on a car with an IMU the final
+        solve corrects keyframes by a few cm and 0.01 deg). Frames the final solve placed with
+        the IMU (frame_poses) take those."""
+        n = len(self.odom_poses)
+        out = np.empty((n, 4, 4))
+        corr = {k: T @ inverse(self.store.T_world_kf_odom(k)) for k, T in self.kf_poses.items()}
+        start: dict[int, int] = {}  # keyframe -> its own frame (the first that hangs off it)
+        for i, k in enumerate(self.frame_kf):
+            start.setdefault(k, i)
+        t = np.asarray(self.stamps_s, dtype=float)
+        if len(t) != n or not np.all(np.isfinite(t)):
+            t = np.arange(n, dtype=float)
+        for i, (T_odom, k) in enumerate(zip(self.odom_poses, self.frame_kf)):
+            if i in self.frame_poses:
+                out[i] = self.frame_poses[i]
+                continue
+            out[i] = corr[k] @ T_odom
+            j = start.get(k + 1)
+            if j is None or k + 1 not in corr or i == start[k] or not t[j] > t[start[k]]:
+                continue
+            s = float(np.clip((t[i] - t[start[k]]) / (t[j] - t[start[k]]), 0.0, 1.0))
+            out[i] = interpolate(out[i], corr[k + 1] @ T_odom, s)
         return out
 
 
@@ -322,6 +345,7 @@ class Pipeline:
         if out.T_S_world is None:  # the GNSS could not place the run, and no IMU
             return
         r.kf_poses, r.kf_covariances = out.kf_poses, out.covariances
+        r.frame_poses = out.frame_poses
         # the output map frame: frame 0 at its stamp (lidar_slam.run.outputs anchors there)
         kf0 = r.frame_kf[0]
         T_world_map = r.kf_poses[kf0] @ inverse(r.store.T_world_kf_odom(kf0)) @ r.odom_poses[0]

@@ -22,6 +22,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import gtsam
 import numpy as np
 
 from lidar_slam.backend import gnss as gnss_align
@@ -29,7 +30,7 @@ from lidar_slam.backend import gtsam_graph, inertial_graph
 from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.geo import LocalEnu
-from lidar_slam.geometry import inverse, make_pose
+from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import ImuStream, combined_params, gravity_rotation
 from lidar_slam.io.inertial import GnssFixes, ImuSamples
 
@@ -96,6 +97,9 @@ class InertialResult:
     fixes: list[FixReport] = field(default_factory=list)
     summary: dict = field(default_factory=dict)
     seconds: float = 0.0
+    # T_world_lidar at the stamps of the frames between two keyframes linked by the IMU (keyed
+    # by the frame's position in the run): see imu_frame_poses
+    frame_poses: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 def _velocities(T_world_kf: dict[int, np.ndarray], tr: RunTrajectory, C: np.ndarray
@@ -126,6 +130,36 @@ def _imu_links(stream: ImuStream, cfg: SlamConfig, stamps: np.ndarray, keys: lis
         if np.isfinite(t0) and np.isfinite(t1) and stream.start_s <= t0 < t1 <= stream.end_s:
             links.append(inertial_graph.ImuLink(i, j, stream.preintegrate(t0, t1, params)))
     return links
+
+
+def imu_frame_poses(links: list[inertial_graph.ImuLink], sol: inertial_graph.InertialSolution,
+                    stream: ImuStream, params, kf_stamps_s: np.ndarray,
+                    frame_stamps_s: np.ndarray) -> dict[int, np.ndarray]:
+    """T_S_imu at the stamp of every frame strictly between two keyframes linked by the IMU:
+    the IMU integrated forward from the first keyframe's solved state (velocity, bias), its
+    mismatch with the second keyframe's solved pose spread linearly over the interval. Frames
+    between keyframes are not in the solve; moved with their keyframes' corrections they keep
+    the odometry's scan-to-scan jitter (sim 07-os0: 2 cm per frame along track) plus the
+    keyframes' own, where the IMU over a fraction of a second is good to a millimetre."""
+    out: dict[int, np.ndarray] = {}
+    for ln in links:
+        if ln.i not in sol.poses or ln.j not in sol.poses:
+            continue
+        t0, t1 = float(kf_stamps_s[ln.i]), float(kf_stamps_s[ln.j])
+        inside = np.flatnonzero((frame_stamps_s > t0) & (frame_stamps_s < t1))
+        if not len(inside):
+            continue
+        bias = gtsam.imuBias.ConstantBias(np.asarray(sol.biases[ln.i][:3], dtype=float),
+                                          np.asarray(sol.biases[ln.i][3:], dtype=float))
+        start = gtsam.NavState(gtsam.Pose3(sol.poses[ln.i]),
+                               np.asarray(sol.velocities[ln.i], dtype=float))
+        T_end = ln.pim.predict(start, bias).pose().matrix()
+        mismatch = sol.poses[ln.j] @ inverse(T_end)
+        for f in inside.tolist():
+            t = float(frame_stamps_s[f])
+            T = stream.preintegrate(t0, t, params, bias).predict(start, bias).pose().matrix()
+            out[f] = interpolate(T, mismatch @ T, (t - t0) / (t1 - t0))
+    return out
 
 
 def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[int],
@@ -331,6 +365,10 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
                             {k: Ad[k] @ c @ Ad[k].T for k, c in sol.covariances.items()},
                             T_S_world_out, enu if tied is not None else None)
     if links:
+        C_inv = inverse(C)
+        frames = imu_frame_poses(links, sol, ImuStream(imu), combined_params(cfg.imu),
+                                 tr.kf_stamps_s, tr.frame_stamps_s)
+        result.frame_poses = {f: T_world_S @ T @ C_inv for f, T in frames.items()}
         bias = np.mean([sol.biases[k] for k in sol.biases], axis=0)
         summary["imu"]["mean_bias_accel_mps2"] = [round(float(v), 5) for v in bias[:3]]
         summary["imu"]["mean_bias_gyro_radps"] = [round(float(v), 6) for v in bias[3:]]
