@@ -175,10 +175,17 @@ def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
     from lidar_slam.run import checkpoint
 
     resuming = prepare_out_dir(out, RUN_OUTPUTS, overwrite, resume)
+    if resume and not resuming:  # a missing or empty --out: nothing was ever run there
+        log.warning("--resume: %s holds no run; starting from the first scan", out)
     if resuming and not checkpoint.has_checkpoint(out):
         if (out / "checkpoint" / "run.json").is_file():
             checkpoint.check_same_run(out, identity)
-        prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)  # killed before its first checkpoint
+        # Killed before its first checkpoint (every checkpoint.every_keyframes keyframes), or
+        # a run that ended before it: the same run again from the start, said in one line.
+        log.warning("--resume: no checkpoint in %s (the run there stopped before its first: "
+                    "one every checkpoint.every_keyframes keyframes); starting over from the "
+                    "first scan", out)
+        prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)
         return False
     if resuming:
         checkpoint.check_same_run(out, identity)
