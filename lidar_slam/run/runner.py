@@ -203,6 +203,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     Raises RunFailed when nothing was written."""
     from lidar_slam import __version__
     from lidar_slam.config import load_config
+    from lidar_slam.frontend.imu_check import trusted_input
     from lidar_slam.io.atomic import write_text_atomic
     from lidar_slam.io.sources import open_source, read_ahead
     from lidar_slam.pipeline import Pipeline
@@ -240,6 +241,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                 pipe.close()
                 discard_run(out, created)
                 raise _nothing_written(end, stop.received, out, data, frames, cfg)
+            inertial = trusted_input(inertial, pipe.inertial)  # as the IMU check left it
             result = pipe.finish(inertial)
             status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
                       "frames_requested": total}
@@ -250,7 +252,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                         "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
                         "input_notes": source.input_notes, **inertial.summary,
                         **({} if pipe.inertial is None
-                           else {"imu_frontend": pipe.inertial.summary()}),
+                           else {"imu_frontend": pipe.inertial.summary(),
+                                 "imu_check": pipe.inertial.check.summary()}),
                         "start": start,
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}
