@@ -36,6 +36,12 @@ registration by more than MAX_DISAGREEMENT_M / _DEG, or a smoother failure: both
 IMU is initialised again (bias and attitude kept) from the next INIT_SECONDS of lidar-only
 scans.
 
+Every registered scan also feeds the IMU check (lidar_slam.frontend.imu_check): a gyro in deg/s
+is converted, and a mounting that does not match the lidar's rotations, or a third disagreement,
+switches the IMU off for the rest of the run (one warning; lidar-only from there). A prediction
+that is not a rigid transform (a diverged state) is never handed to kiss-icp, whose Sophus
+aborts the process on it.
+
 gtsam's PreintegratedCombinedMeasurements.deskewPointsAtTimes is not used: it rotates points
 into the frame at the START of the preintegration along an interpolated rotation and translates
 them by velocity * t only (no gravity, no acceleration), whereas the points here go to the
