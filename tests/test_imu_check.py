@@ -183,3 +183,48 @@ def test_the_imu_check_is_resumed_as_it_was(walk, tmp_path):
     assert again.summary() == check.summary() and again.n_disagreements == 2
     assert again.last[0] == 1.5 and len(again.intervals) == 1
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_a_run_resumed_after_the_gyro_was_converted_ends_as_the_uninterrupted_run(walk,
+                                                                                  tmp_path):
+    """The verdict and the converted gyro ride in the checkpoint: resumed after the deg/s
+    conversion, every pose within 1e-6 m of the run never stopped."""
+    from lidar_slam import pipeline
+    from lidar_slam.config import load_config
+    from lidar_slam.io.inertial_input import load_inertial
+    from lidar_slam.io.sources import open_source
+    from lidar_slam.run import checkpoint
+
+    seq = make_case(walk[0], tmp_path / "deg", "deg")
+    cfg = load_config(seq / "lidar_slam.yaml", {"loop": {"enabled": False},
+                                                "odometry": {"max_num_threads": 1}})
+    src = open_source(seq)
+    samples = load_inertial(seq, src.kind, src.stamps, imu_enabled=True,
+                            gnss_enabled=False).imu
+
+    def process(pipe, start, count):
+        for scan in src.scans(start, count):
+            pipe.process(scan)
+
+    whole = pipeline.Pipeline(cfg, None, imu=samples)
+    try:
+        process(whole, 0, len(src))
+        uninterrupted = np.array(whole.finish().odom_poses)
+    finally:
+        whole.close()
+    out, stop = tmp_path / "run", 60
+    checkpoint.start_run(out, checkpoint.describe_run(seq, 0, None, None, cfg))
+    first = pipeline.Pipeline(cfg, out, imu=samples)
+    process(first, 0, stop)
+    assert first.inertial.check.gyro_scale != 1.0
+    checkpoint.save(out, first, first.loops_applied_upto)
+    first.close()
+    resumed = pipeline.Pipeline(cfg, out, resume=True, imu=samples)
+    try:
+        assert checkpoint.restore(out, resumed) == stop
+        process(resumed, stop, len(src) - stop)
+        poses = np.array(resumed.finish().odom_poses)
+    finally:
+        resumed.close()
+    assert resumed.inertial.check.gyro_scale == pytest.approx(np.pi / 180)
+    np.testing.assert_allclose(poses, uninterrupted, atol=1e-6)
