@@ -595,9 +595,10 @@ class ImuFrontend:
         graph.add(gtsam.PriorFactorConstantBias(_B(k0), self.bias, gtsam.noiseModel.Diagonal
                                                 .Sigmas(np.r_[[BIAS_SIGMA_ACCEL] * 3,
                                                               [BIAS_SIGMA_GYRO] * 3])))
-        # The window solved as a batch first (Levenberg-Marquardt), then handed to the smoother.
-        values = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        # The window solved as a batch first (Levenberg-Marquardt), then handed to the smoother;
+        # either may find the system indeterminate (garbage IMU data): tried again, not raised.
         try:
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
             self._update(graph, values, k0 + len(t) - 1, len(t), fresh=True)
         except RuntimeError as exc:
             log.warning("IMU initialisation failed (%s); trying again", exc)
