@@ -432,10 +432,42 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         err = exc.errors()[0]
         where = ".".join(str(x) for x in err["loc"]) or "(top level)"
         shown = repr(err["input"])
-        got = "" if err["type"] == "extra_forbidden" else \
+        got = _did_you_mean(err["loc"]) if err["type"] == "extra_forbidden" else \
             f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
         message = " ".join(f"{where}: {err['msg']}{got}".split())
         raise ConfigError(f"{path or 'config'}: {message}") from None
+
+
+def _section_keys(model: type[BaseModel], prefix: str = "") -> dict[str, list[str]]:
+    """Every key of model and of the sections nested in it, by name: its dotted paths."""
+    keys: dict[str, list[str]] = {}
+    for name, field in model.model_fields.items():
+        keys.setdefault(name, []).append(prefix + name)
+        sub = field.annotation
+        if isinstance(sub, type) and issubclass(sub, BaseModel):
+            for key, paths in _section_keys(sub, f"{prefix}{name}.").items():
+                keys.setdefault(key, []).extend(paths)
+    return keys
+
+
+def _did_you_mean(loc: tuple) -> str:
+    """For a key the config does not have: the closest key of its section (difflib), or the
+    section that has a key of that name; "" when neither."""
+    import difflib
+
+    model: type[BaseModel] = SlamConfig
+    for part in loc[:-1]:
+        field = model.model_fields.get(str(part))
+        sub = field.annotation if field is not None else None
+        if not (isinstance(sub, type) and issubclass(sub, BaseModel)):
+            return ""
+        model = sub
+    key = str(loc[-1])
+    close = difflib.get_close_matches(key, list(model.model_fields), n=1, cutoff=0.6)
+    if close:
+        return f" (did you mean {'.'.join([*map(str, loc[:-1]), close[0]])}?)"
+    elsewhere = _section_keys(SlamConfig).get(key)
+    return f" (did you mean {' or '.join(elsewhere[:3])}?)" if elsewhere else ""
 
 
 def _read_overlay(p: Path) -> dict:

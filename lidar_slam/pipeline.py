@@ -371,13 +371,15 @@ def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = Non
     resume, signals, the frames so far kept on an error, the outputs) is
     lidar_slam.run.run_sequence. inertial: the IMU / GNSS (io.inertial_input.InertialInput):
     the IMU deskews and predicts in the front-end, both go into the final solve."""
+    from lidar_slam.frontend.imu_check import trusted_input
+
     pipe = Pipeline(cfg, run_dir, imu=None if inertial is None else inertial.imu)
     try:
         for scan in scans:
             pipe.process(scan)
             if on_scan is not None:
                 on_scan(scan, pipe.result)
-        return pipe.finish(inertial)
+        return pipe.finish(trusted_input(inertial, pipe.inertial))
     finally:
         if pipe.loops is not None:
             pipe.loops.close()

@@ -120,3 +120,28 @@ def test_a_config_that_is_not_utf8_is_one_line(tmp_path):
     path.write_bytes(b"odometry:\n  voxel_size_m: \xff\n")
     with pytest.raises(InputError, match="c.yaml: not a text file"):
         load_config(path)
+
+
+@pytest.mark.parametrize("text,hint", [
+    ("odometry: {voxle_size_m: 0.5}\n", "(did you mean odometry.voxel_size_m?)"),
+    ("imuu: {enabled: false}\n", "(did you mean imu?)"),
+    ("loop: {verify: {coarse_voxel: 1.0}}\n", "(did you mean loop.verify.coarse_voxel_m?)"),
+    ("data: {time_offset_s: 0.1}\n", "(did you mean imu.time_offset_s or gnss.time_offset_s?)"),
+])
+def test_a_config_typo_gets_the_closest_key(tmp_path, text, hint):
+    """An unknown key names the closest one of its section (difflib), or the sections that
+    have a key of that name; one line still."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    line = str(err.value)
+    assert "\n" not in line and line.endswith(hint), line
+
+
+def test_a_key_like_none_of_the_config_gets_no_guess(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("odometry: {zzzzqq: 1}\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(err.value).endswith("odometry.zzzzqq: Extra inputs are not permitted")

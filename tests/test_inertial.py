@@ -113,12 +113,11 @@ def test_an_imu_file_that_cannot_be_used_is_one_error_naming_it(tmp_path, text, 
     assert message.startswith(str(path)) and needle in message and "\n" not in message, message
 
 
-@pytest.mark.parametrize("scale,needle", [(1 / 9.81, "median specific force 1 m/s^2"),
-                                           (0.0, "median specific force 0 m/s^2")])
-def test_an_imu_file_in_g_or_without_gravity_is_refused(tmp_path, scale, needle):
+def test_an_imu_file_without_gravity_is_refused(tmp_path):
     rows = _imu_rows()
-    rows[:, 4:7] *= scale
-    with pytest.raises(InputError, match=re.escape(needle + " (expected about 9.81")):
+    rows[:, 4:7] *= 0.0
+    with pytest.raises(InputError, match=re.escape("median specific force 0 m/s^2 (expected "
+                                                   "about 9.81")):
         read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
 
 

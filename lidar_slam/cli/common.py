@@ -142,7 +142,7 @@ UNITS = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m":
 
 
 # Of a nested summary entry with many fields, the ones the terminal table shows.
-SUMMARY_KEYS_SHOWN = ("used", "source", "samples", "rate_hz", "reason")
+SUMMARY_KEYS_SHOWN = ("used", "source", "samples", "rate_hz", "reason", "verdict")
 
 
 def summary_table(summary: dict) -> str:

@@ -406,6 +406,67 @@ def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray
     _save(fig, path)
 
 
+def plot_run_top_view(path: Path, poses: np.ndarray, map_ply: Path | None,
+                      bins: int = 600) -> None:
+    """Top view (x-y of the map frame) of a run without ground truth: the map's point density
+    (map_ply, read a chunk at a time) and the trajectory on it, as `eval`'s top view."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import LogNorm
+    from matplotlib.figure import Figure
+
+    xy = poses[:, :2, 3]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    counts = None
+    if map_ply is not None and map_ply.is_file():
+        rows = _ply_rows(map_ply)
+        if len(rows):
+            lo = np.minimum(lo, rows[:, :2].min(axis=0))
+            hi = np.maximum(hi, rows[:, :2].max(axis=0))
+            side = float(max(hi - lo)) or 1.0
+            edges = [np.linspace(lo[k], lo[k] + side, bins + 1) for k in (0, 1)]
+            counts = np.zeros((bins, bins))
+            for start in range(0, len(rows), 1 << 20):  # bounded memory on a long run's map
+                chunk = np.asarray(rows[start:start + (1 << 20), :2], dtype=np.float64)
+                counts += np.histogram2d(chunk[:, 0], chunk[:, 1], bins=edges)[0]
+    fig = Figure(figsize=(7, 7))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    if counts is not None and counts.any():
+        # From the median occupied cell up: floors and ceilings (few points per cell) light,
+        # walls and poles (many, stacked) dark.
+        floor = float(np.median(counts[counts > 0]))
+        ax.imshow(np.where(counts > 0, counts, np.nan).T, origin="lower", cmap="Greys",
+                  norm=LogNorm(vmin=floor, vmax=max(2.0 * floor, float(counts.max())),
+                               clip=True),
+                  extent=(edges[0][0], edges[0][-1], edges[1][0], edges[1][-1]),
+                  interpolation="nearest")
+    ax.plot(xy[:, 0], xy[:, 1], "b-", lw=1.0, label=f"trajectory ({len(xy)} frames)")
+    ax.plot(xy[0, 0], xy[0, 1], "ko", label="start")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("top view: trajectory on the map (grey: map points per cell, log)")
+    _save(fig, path)
+
+
+def _ply_rows(path: Path) -> np.ndarray:
+    """The float32 vertex rows of a binary PLY such as the run's map.ply, memory-mapped."""
+    with open(path, "rb") as fh:
+        header = []
+        while not header or header[-1] != "end_header":
+            line = fh.readline()
+            if not line:
+                return np.zeros((0, 3), np.float32)
+            header.append(line.decode("ascii", "replace").strip())
+        start = fh.tell()
+    n = int(next((h.split()[2] for h in header if h.startswith("element vertex")), 0))
+    ncol = sum(h.startswith("property float") for h in header)
+    if n == 0 or ncol < 3:
+        return np.zeros((0, 3), np.float32)
+    return np.memmap(path, dtype="<f4", mode="r", offset=start, shape=(n, ncol))
+
+
 def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance,
                            gt_label: str = GROUND_TRUTH) -> None:
     """Translation error (m) from frame 0 against GT distance travelled (m)."""

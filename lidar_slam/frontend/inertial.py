@@ -36,6 +36,12 @@ registration by more than MAX_DISAGREEMENT_M / _DEG, or a smoother failure: both
 IMU is initialised again (bias and attitude kept) from the next INIT_SECONDS of lidar-only
 scans.
 
+Every registered scan also feeds the IMU check (lidar_slam.frontend.imu_check): a gyro in deg/s
+is converted, and a mounting that does not match the lidar's rotations, or a third disagreement,
+switches the IMU off for the rest of the run (one warning; lidar-only from there). A prediction
+that is not a rigid transform (a diverged state) is never handed to kiss-icp, whose Sophus
+aborts the process on it.
+
 gtsam's PreintegratedCombinedMeasurements.deskewPointsAtTimes is not used: it rotates points
 into the frame at the START of the preintegration along an interpolated rotation and translates
 them by velocity * t only (no gravity, no acceleration), whereas the points here go to the
@@ -52,6 +58,7 @@ import numpy as np
 
 from lidar_slam.config import ImuConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer, SweepMotion
+from lidar_slam.frontend.imu_check import ImuCheck
 from lidar_slam.frontend.odometry import OdometryResult
 from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import GRAVITY_MPS2, ImuStream, combined_params, gravity_rotation
@@ -101,6 +108,15 @@ def _towards(T: np.ndarray, f: float) -> np.ndarray:
     return make_pose(R, f * T[:3, 3])
 
 
+def _is_rigid(T: np.ndarray, tol: float = 1e-11) -> bool:
+    """Whether T is a finite 4x4 rigid transform: |R R^T - I| (Frobenius) under tol, 10x
+    stricter than Sophus's check (1e-10), which aborts the process in kiss-icp."""
+    if not np.isfinite(T).all():
+        return False
+    R = T[:3, :3]
+    return bool(np.linalg.norm(R @ R.T - np.eye(3)) < tol and np.linalg.det(R) > 0)
+
+
 def _isam_params() -> gtsam.ISAM2Params:
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(0.1)
@@ -127,10 +143,13 @@ class ImuFrontend:
     """IMU deskew and prediction for the odometry; see the module doc."""
 
     def __init__(self, samples: ImuSamples, cfg: ImuConfig):
+        self.samples = samples  # as used: the gyro converted when the check found deg/s
         self.stream = ImuStream(samples)
         self.params = combined_params(cfg)
         self.T_lidar_imu = cfg.T_lidar_imu_matrix()
         self.T_imu_lidar = inverse(self.T_lidar_imu)
+        self.check = ImuCheck(self.T_lidar_imu[:3, :3])
+        self._replaying = False  # restore() replays _learn: the check must not gate it
         self.max_step_s = GAP_PERIODS * float(np.median(np.diff(self.stream.t)))
         self.R_G_Wo: np.ndarray | None = None  # first guess of W_o's attitude w.r.t. gravity
         self.T_Wo_L = np.eye(4)  # registered pose of the last state (kiss-icp's world)
@@ -189,6 +208,17 @@ class ImuFrontend:
         if deskewing and len(times) >= 2:
             motion = SweepMotion(times - t_ref, T_ref_G @ T_G_L)
         self._guess = self.T_Wo_L @ inverse(T_G_L_last) @ T_G_L[i_ref]
+        if not _is_rigid(self._guess):
+            # A diverged state (e.g. thousands of metres away, where float64 rounding leaves the
+            # rotation unorthogonal): kiss-icp's Sophus would abort the process on it.
+            self.n_diverged += 1
+            self.n_constant_velocity += 1
+            log.warning("%s: IMU prediction is not a rigid transform (diverged): constant "
+                        "velocity, IMU initialised again", scan.source)
+            self._guess = None
+            self._restart()
+            self._disagreed(scan.source)
+            return deskewer(scan, T_prev_curr), None
         self.n_imu += 1
         return deskewer(scan, T_prev_curr, motion), self._guess
 
@@ -201,6 +231,8 @@ class ImuFrontend:
         t_ref = deskewed.scan.stamp_s + deskewed.ref_s
         if guess is not None and deskewed.motion is not None:
             odom = self._at_stamp(deskewed, odom, guess)
+        if self._check(t_ref, odom.T_world_ref, deskewed.scan.source):
+            return odom  # the IMU is off: lidar-only from here
         before = self._light_state()
         smoother = self._smoother
         self._learn(t_ref, odom.T_world_ref, guess, deskewed.scan.source)
@@ -213,6 +245,43 @@ class ImuFrontend:
         else:
             self._journal.append((t_ref, odom.T_world_ref, guess))
         return odom
+
+    def _check(self, t_ref: float, T: np.ndarray, source: str) -> bool:
+        """Feed the IMU check (lidar_slam.frontend.imu_check) with a registered scan and act on
+        its verdict: the gyro converted from deg/s, or the IMU switched off for the rest of the
+        run (one warning each). Whether the IMU is off."""
+        was_off = self.check.verdict == "off"
+        action = self.check.observe(self.stream, t_ref, T)
+        if action == "deg":
+            log.warning("%s: the IMU's gyro turned %.1fx as far as the lidar: read as deg/s and "
+                        "converted to rad/s (IMU initialised again)", self.samples.source,
+                        self.check.ratio)
+            self._rescale_gyro(self.check.gyro_scale)
+        elif action == "off":
+            self._switch_off(source)
+        return was_off or action == "off"
+
+    def _disagreed(self, source: str) -> None:
+        """After a re-initialisation for a disagreement: the IMU check counts it (not when a
+        resumed run replays the smoother's calls: the counts are restored)."""
+        if not self._replaying and self.check.disagreed() == "off":
+            self._switch_off(source)
+
+    def _switch_off(self, source: str) -> None:
+        self.check.off_at = source
+        log.warning("%s: IMU not used from %s on: %s; the run goes on lidar-only (summary.json "
+                    "imu_check)", self.samples.source, source, self.check.reason)
+        self._restart()
+
+    def _rescale_gyro(self, factor: float) -> None:
+        """The gyro multiplied by factor from here on (and in the final solve: self.samples);
+        the state learnt from the unscaled one dropped."""
+        s = self.samples
+        self.samples = ImuSamples(s.stamp_s, s.gyro_radps * factor, s.accel_mps2, s.source,
+                                  s.dropped)
+        self.stream = ImuStream(self.samples)
+        self._restart()
+        self.R_G_Wo, self.bias = None, gtsam.imuBias.ConstantBias()
 
     def _learn(self, t_ref: float, T: np.ndarray, guess: np.ndarray | None,
                source: str = "") -> None:
@@ -231,6 +300,7 @@ class ImuFrontend:
                         "initialised again", source, *self.prediction_error[-1])
             self._restart()
             self._pending.append((t_ref, T))
+            self._disagreed(source)
             return
         k = self._k + 1
         pim = self._preintegrated(t_ref)
@@ -252,6 +322,7 @@ class ImuFrontend:
                         (str(exc).strip().splitlines() or [type(exc).__name__])[0])
             self._restart()
             self._pending.append((t_ref, T))
+            self._disagreed(source)
             return
         self._k, self.t_last, self.T_Wo_L = k, t_ref, T
         self._read_state(k)
@@ -447,11 +518,16 @@ class ImuFrontend:
                                     self.n_diverged, self.n_inits,
                                     np.nan if self.first_imu_s is None else self.first_imu_s])
         out["prediction_error"] = np.array(self.prediction_error).reshape(-1, 2)
+        out.update(self.check.state())
         return out
 
     def restore(self, a: dict[str, np.ndarray]) -> None:
         """Continue from state(): the smoother is rebuilt by replaying its calls."""
         now = self._unpack(a, "now_")
+        if "check_scalars" in a:
+            self.check.restore(a)
+            if self.check.gyro_scale != 1.0:
+                self._rescale_gyro(self.check.gyro_scale)
         self._smoother, self._base, self._journal = None, None, []
         if "base_scalars" in a:
             self._base = self._unpack(a, "base_")
@@ -459,8 +535,12 @@ class ImuFrontend:
             guesses = [None if np.isnan(G).any() else np.array(G) for G in a["journal_guess"]]
             self._journal = [(float(t), np.array(T), g) for t, T, g in
                              zip(a["journal_t"], a["journal_T"], guesses)]
-            for t, T, g in self._journal:
-                self._learn(t, T, g, "(replayed)")
+            self._replaying = True
+            try:
+                for t, T, g in self._journal:
+                    self._learn(t, T, g, "(replayed)")
+            finally:
+                self._replaying = False
         self._set_light(now)
         n_imu, n_cv, n_gaps, n_div, n_inits, first = a["counters"]
         self.n_imu, self.n_constant_velocity, self.n_gaps = int(n_imu), int(n_cv), int(n_gaps)
@@ -473,6 +553,9 @@ class ImuFrontend:
     def _initialise(self) -> None:
         """Start the IMU from the lidar-only scans in _pending once they span INIT_SECONDS."""
         pend = self._pending
+        if not self._replaying and self.check.blocks_init():
+            del pend[:-2 * INIT_MIN_SCANS]  # (bounded while the IMU waits)
+            return
         for i in range(len(pend) - 1, 0, -1):  # only scans the IMU covers in one piece
             if not self._covers(pend[i - 1][0], pend[i][0]):
                 del pend[:i]
@@ -512,9 +595,10 @@ class ImuFrontend:
         graph.add(gtsam.PriorFactorConstantBias(_B(k0), self.bias, gtsam.noiseModel.Diagonal
                                                 .Sigmas(np.r_[[BIAS_SIGMA_ACCEL] * 3,
                                                               [BIAS_SIGMA_GYRO] * 3])))
-        # The window solved as a batch first (Levenberg-Marquardt), then handed to the smoother.
-        values = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        # The window solved as a batch first (Levenberg-Marquardt), then handed to the smoother;
+        # either may find the system indeterminate (garbage IMU data): tried again, not raised.
         try:
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
             self._update(graph, values, k0 + len(t) - 1, len(t), fresh=True)
         except RuntimeError as exc:
             log.warning("IMU initialisation failed (%s); trying again", exc)

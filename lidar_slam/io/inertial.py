@@ -3,10 +3,12 @@
 imu.csv: header `stamp_s,wx,wy,wz,ax,ay,az`; angular rate (rad/s) and specific force (m/s^2,
 gravity included: ~+9.81 on z at rest with z up), both in the IMU frame.
 gnss.csv: header `stamp_s,lat_deg,lon_deg,alt_m,sigma_h_m,sigma_v_m` (WGS84, 1-sigma in m).
-Stamps are on the clock of times.txt. Rows that cannot be used are dropped and counted (one
-warning per file, the counts in `dropped`): non-finite or invalid values, a stamp equal to the
-previous kept one (duplicate), a stamp before it (out of order). A file with a bad header, a
-row that is not numbers, or fewer than two usable rows is refused (InputError, exit 2).
+Stamps are on the clock of times.txt. Stamps in ms, us or ns and accelerations in g are told
+from the data and converted, with one warning (lidar_slam.io.imu_units). Rows that cannot be
+used are dropped and counted (one warning per file, the counts in `dropped`): non-finite or
+invalid values, a stamp equal to the previous kept one (duplicate), a stamp before it (out of
+order). A file with a bad header, a row that is not numbers, or fewer than two usable rows is
+refused (InputError, exit 2).
 """
 
 from __future__ import annotations
@@ -151,8 +153,10 @@ def _clean(path: Path, rows: np.ndarray, valid: np.ndarray, what: str
 def read_imu_csv(path: str | Path) -> ImuSamples:
     """imu.csv (see the module docstring): rows with a non-finite value dropped, stamps made
     strictly increasing by dropping duplicates and steps back, gaps counted (warning)."""
+    from lidar_slam.io.imu_units import to_standard_units
+
     p = Path(path)
-    return imu_from_rows(p, _read_table(p, IMU_COLUMNS))
+    return imu_from_rows(p, to_standard_units(_read_table(p, IMU_COLUMNS), p))
 
 
 def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None

@@ -55,7 +55,8 @@ def relative_seconds(raw: np.ndarray, stamp_ns: int | None = None) -> np.ndarray
     raw = np.asarray(raw).ravel()
     if raw.size == 0:
         return np.zeros(0)
-    values = raw.astype(np.float64)
+    with np.errstate(invalid="ignore"):  # signalling NaNs (a garbage file): caught below
+        values = raw.astype(np.float64)
     if not np.isfinite(values).all():
         _warn_once("per-point time field has NaN/inf values; such scans are used without times")
         return None

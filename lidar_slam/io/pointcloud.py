@@ -35,8 +35,15 @@ def read_bin(path: Path) -> CloudData:
         raise InputError(path, f"cannot open ({exc.strerror})") from exc
     if size % 16 != 0:
         raise InputError(path, f"{size} bytes is not a multiple of 16 (float32 x,y,z,intensity)")
-    data = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-    return CloudData(data[:, :3].astype(np.float64), None, data[:, 3].copy())
+    try:
+        data = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    except OSError as exc:  # e.g. permission denied: stat needs no read permission
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    # A file of garbage holds signalling NaNs, whose cast NumPy warns about: make_scan drops
+    # the non-finite points and says so, naming the file.
+    with np.errstate(invalid="ignore"):
+        points = data[:, :3].astype(np.float64)
+    return CloudData(points, None, data[:, 3].copy())
 
 
 # open3d's PCD and PLY readers allocate the point tensors the header asks for and, when the data

@@ -198,7 +198,10 @@ class KittiSource:
         tfile = self.root / "velodyne_times" / path.name
         times = None
         if tfile.is_file():
-            raw = np.fromfile(tfile, dtype=np.float32)
+            try:
+                raw = np.fromfile(tfile, dtype=np.float32)
+            except OSError as exc:
+                raise InputError(tfile, f"cannot read ({exc.strerror or exc})") from None
             if len(raw) != len(cloud.points):
                 raise InputError(tfile, f"has {len(raw)} times for {len(cloud.points)} points")
             times = relative_seconds(raw, stamp_ns)

@@ -11,7 +11,8 @@ from lidar_slam.errors import RunFailed
 RUN_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.ply", "loops.csv",
                "covariances.csv", "graph.g2o", "config.yaml", "summary.json",
                 "error_traceback.txt", "keyframes", "checkpoint", "gnss_fixes.csv",
-                "poses_enu.txt", "poses_wgs84.csv")  # with GNSS
+                "poses_enu.txt", "poses_wgs84.csv",  # with GNSS
+               "top_view.png")
 
 
 def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: bool = False

@@ -12,7 +12,7 @@ import numpy as np
 
 from lidar_slam.config import SlamConfig, dump_config
 from lidar_slam.eval import metrics
-from lidar_slam.eval.evaluate import run_summary_metrics
+from lidar_slam.eval.evaluate import plot_run_top_view, run_summary_metrics
 from lidar_slam.geo import GeoReference
 from lidar_slam.geometry import inverse
 from lidar_slam.io.atomic import atomic_path, write_atomic
@@ -149,6 +149,8 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary["map_points"] = write_map(out_dir / "map.ply", result.store, T_map_kf,
                                           cfg.map.voxel_size_m)
         write_map_manifest(result.store, T_map_kf, cfg)
+        # A picture for a user with no ground truth (and no rerun): as eval's top view.
+        plot_run_top_view(out_dir / "top_view.png", poses, out_dir / "map.ply")
         if result.kf_covariances:
             write_covariances(out_dir / "covariances.csv", result)
         if result.geo is not None:

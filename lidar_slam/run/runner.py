@@ -186,10 +186,17 @@ def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
     from lidar_slam.run import checkpoint
 
     resuming = prepare_out_dir(out, RUN_OUTPUTS, overwrite, resume)
+    if resume and not resuming:  # a missing or empty --out: nothing was ever run there
+        log.warning("--resume: %s holds no run; starting from the first scan", out)
     if resuming and not checkpoint.has_checkpoint(out):
         if (out / "checkpoint" / "run.json").is_file():
             checkpoint.check_same_run(out, identity)
-        prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)  # killed before its first checkpoint
+        # Killed before its first checkpoint (every checkpoint.every_keyframes keyframes), or
+        # a run that ended before it: the same run again from the start, said in one line.
+        log.warning("--resume: no checkpoint in %s (the run there stopped before its first: "
+                    "one every checkpoint.every_keyframes keyframes); starting over from the "
+                    "first scan", out)
+        prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)
         return False
     if resuming:
         checkpoint.check_same_run(out, identity)
@@ -208,6 +215,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     Raises RunFailed when nothing was written."""
     from lidar_slam import __version__
     from lidar_slam.config import load_config
+    from lidar_slam.frontend.imu_check import trusted_input
     from lidar_slam.io.atomic import write_text_atomic
     from lidar_slam.io.sources import open_source, read_ahead
     from lidar_slam.pipeline import Pipeline
@@ -251,6 +259,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                 pipe.close()
                 discard_run(out, created)
                 raise _nothing_written(end, stop.received, out, data, frames, cfg)
+            inertial = trusted_input(inertial, pipe.inertial)  # as the IMU check left it
             result = pipe.finish(inertial)
             status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
                       "frames_requested": total}
@@ -261,7 +270,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                         "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
                         "input_notes": source.input_notes, **inertial.summary,
                         **({} if pipe.inertial is None
-                           else {"imu_frontend": pipe.inertial.summary()}),
+                           else {"imu_frontend": pipe.inertial.summary(),
+                                 "imu_check": pipe.inertial.check.summary()}),
                         "start": start,
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}

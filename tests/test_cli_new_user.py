@@ -1,0 +1,116 @@
+"""What a new user hit on a first `lidar-slam run` (issue 30, item 7): an unreadable scan, a
+--resume with nothing to resume, a scan of garbage bytes, no picture, a config typo."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import assert_one_line_error
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "sample_scans"
+FEW = ("--n-scans", "4", "--no-loops")
+
+
+def lidar_slam(*args, python_flags=(), timeout=600):
+    return subprocess.run([sys.executable, *python_flags, "-m", "lidar_slam.cli",
+                           *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def sample_copy(tmp_path: Path, n: int = 4) -> Path:
+    """The first n scans of sample_scans (KITTI layout, with per-point times)."""
+    data = tmp_path / "scans"
+    for sub in ("velodyne", "velodyne_times"):
+        (data / sub).mkdir(parents=True)
+        for f in sorted((SAMPLE / sub).glob("*.bin"))[:n]:
+            shutil.copy(f, data / sub / f.name)
+    shutil.copy(SAMPLE / "calib.txt", data / "calib.txt")
+    (data / "times.txt").write_text("".join((SAMPLE / "times.txt").read_text()
+                                            .splitlines(keepends=True)[:n]))
+    return data
+
+
+def test_an_unreadable_scan_is_one_line_naming_it_and_exit_2(tmp_path, monkeypatch):
+    """Permission denied on a scan: its path and the reason, exit 2 (it was "internal error",
+    exit 1). chmod as a user; as root (who reads anything) the OS error NumPy raises."""
+    data = sample_copy(tmp_path)
+    bad = data / "velodyne" / "000002.bin"
+    if os.geteuid() != 0:
+        bad.chmod(0)
+        proc = lidar_slam("run", data, "--out", tmp_path / "o", *FEW)
+        assert_one_line_error(proc, str(bad), "Permission denied", "frames so far written")
+        return
+    from typer.testing import CliRunner
+
+    from lidar_slam.cli import app
+
+    real = np.fromfile
+
+    def denied(file, *args, **kwargs):
+        if Path(file) == bad:
+            raise PermissionError(13, "Permission denied", str(file))
+        return real(file, *args, **kwargs)
+
+    monkeypatch.setattr(np, "fromfile", denied)
+    res = CliRunner().invoke(app, ["run", str(data), "--out", str(tmp_path / "o"), *FEW])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.startswith("lidar-slam: error:")]
+    assert len(lines) == 1 and f"{bad}: cannot read (Permission denied)" in lines[0], res.output
+
+
+def test_resume_with_no_checkpoint_says_it_starts_over(tmp_path):
+    """--resume on a folder with no run, and on a run that ended before its first checkpoint:
+    one warning line each, then the run from the first scan (documented in the README)."""
+    out = tmp_path / "o"
+    proc = lidar_slam("run", SAMPLE, "--out", out, *FEW, "--resume")
+    assert proc.returncode == 0, proc.stderr
+    assert f"WARNING lidar_slam: --resume: {out} holds no run; starting from the first scan" \
+        in proc.stderr
+    proc = lidar_slam("run", SAMPLE, "--out", out, *FEW, "--resume")
+    assert proc.returncode == 0, proc.stderr
+    said = [ln for ln in proc.stderr.splitlines() if "--resume" in ln]
+    assert len(said) == 1 and f"no checkpoint in {out}" in said[0] \
+        and "starting over from the first scan" in said[0], proc.stderr
+
+
+def test_a_scan_of_garbage_bytes_warns_naming_it_with_no_numpy_warning(tmp_path):
+    """Random bytes (signalling NaNs among them) in a scan and its times: warnings that name
+    the file, the scan skipped, the run goes on; with -W error a NumPy RuntimeWarning would
+    end the run."""
+    data = sample_copy(tmp_path)
+    rng = np.random.default_rng(3)
+    for sub in ("velodyne", "velodyne_times"):
+        f = data / sub / "000002.bin"
+        f.write_bytes(rng.bytes(f.stat().st_size))
+    proc = lidar_slam("run", data, "--out", tmp_path / "o", *FEW,
+                      python_flags=("-W", "error::RuntimeWarning"))
+    assert proc.returncode == 0, proc.stderr
+    assert "RuntimeWarning" not in proc.stderr and "Traceback" not in proc.stderr
+    named = [ln for ln in proc.stderr.splitlines()
+             if ln.startswith("WARNING") and "000002.bin" in ln]
+    assert named and any("skipped" in ln for ln in named), proc.stderr
+
+
+def test_run_writes_a_top_view_of_trajectory_and_map(tmp_path):
+    out = tmp_path / "o"
+    proc = lidar_slam("run", SAMPLE, "--out", out, *FEW)
+    assert proc.returncode == 0, proc.stderr
+    png = (out / "top_view.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
+
+
+@pytest.mark.parametrize("text,hint", [
+    ("odometry:\n  voxle_size_m: 0.5\n", "did you mean odometry.voxel_size_m?"),
+    ("data:\n  time_offset_s: 0.1\n", "did you mean imu.time_offset_s or gnss.time_offset_s?"),
+])
+def test_a_config_typo_is_one_line_with_did_you_mean(tmp_path, text, hint):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    assert_one_line_error(lidar_slam("run", SAMPLE, "--out", tmp_path / "o", "--config", cfg),
+                          str(cfg), hint)
