@@ -151,13 +151,29 @@ def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: s
     """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
     against the scan stamps and reported in summary.json: the IMU deskews and predicts in the
     front-end (Pipeline(imu=)), both go into the back-end's final solve (Pipeline.finish)."""
+    from lidar_slam.io.datasets import carried_streams
     from lidar_slam.io.inertial_input import load_inertial
 
     stamps = source.stamps if source.kind != "file" else None
     return load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
                          gnss_enabled=cfg.gnss.enabled, imu_offset_s=cfg.imu.time_offset_s,
                          gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
-                         gnss_topic=gnss_topic)
+                         gnss_topic=gnss_topic, carried=carried_streams(source),
+                         imu_mount_given="T_lidar_imu" in cfg.imu.model_fields_set)
+
+
+def _mounting_from_input(cfg, source):
+    """The config with the IMU mounting a public dataset's calibration gives (io.datasets), when
+    the config does not give one itself: a value in the config always wins."""
+    from lidar_slam.io.datasets import carried_streams
+
+    carried = carried_streams(source)
+    if carried is None or carried.T_lidar_imu is None or \
+            "T_lidar_imu" in cfg.imu.model_fields_set:
+        return cfg
+    imu = cfg.imu.model_copy(update={"T_lidar_imu": [float(v) for v in
+                                                     carried.T_lidar_imu.ravel()]})
+    return cfg.model_copy(update={"imu": imu})
 
 
 @dataclass
@@ -207,6 +223,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction)
     total = scan_range(data, start, n_scans, len(source))
+    cfg = _mounting_from_input(cfg, source)
     inertial = _load_inertial(data, source, cfg, imu_topic, gnss_topic)
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
