@@ -208,3 +208,36 @@ def test_eval_against_an_input_without_ground_truth_is_one_line(tmp_path):
     est.write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n")
     proc = _cli("eval", str(est), str(seq))
     assert_one_line_error(proc, "no ground truth found", "mulran")
+
+
+def test_mulran_full_scan_gets_column_times(tmp_path):
+    """A 64 x 1024 MulRan scan: point k of column k // 64 at (k // 64) / 1024 of a sweep (kiss-icp's
+    mulran.py get_timestamps, in seconds of the stamp spacing); a partial one gets none."""
+    seq = tmp_path / "KAIST02"
+    (seq / "sensor_data" / "Ouster").mkdir(parents=True)
+    pts = np.ones((64 * 1024, 4), dtype=np.float32)
+    for ns in (1_000_000_000, 1_100_000_000):
+        pts.tofile(seq / "sensor_data" / "Ouster" / f"{ns}.bin")
+    scan = next(open_source(seq).scans())
+    assert scan.point_times[63] == 0.0 and scan.point_times[64] == pytest.approx(0.1 / 1024)
+    assert scan.point_times[-1] == pytest.approx(0.1 * 1023 / 1024)
+    pts[:100].tofile(seq / "sensor_data" / "Ouster" / "1000000000.bin")
+    assert next(open_source(seq).scans()).point_times is None
+
+
+def test_ground_truth_that_does_not_reach_every_scan(tmp_path):
+    """Boreas poses for the first 8 of 11 scans: run scores those 8, eval pairs those 8."""
+    seq = tmp_path / "boreas-2021-08-05-13-34"
+    shutil.copytree(DATA / FIXTURES["boreas"][0], seq)
+    csv = seq / "applanix" / "lidar_poses.csv"
+    csv.write_text("\n".join(csv.read_text().splitlines()[:9]) + "\n")  # header + 8 rows
+    source = open_source(seq)
+    assert np.isnan(source.ground_truth[8:]).all() and np.isfinite(source.ground_truth[:8]).all()
+    out = tmp_path / "run"
+    proc = _cli("run", str(seq), "--out", str(out), "--no-loops")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ground_truth_frames"] == 8 and summary["ate_rmse_m"] < 0.2
+    proc = _cli("eval", str(out / "poses_tum.txt"), str(seq))
+    assert proc.returncode == 0, proc.stderr
+    assert "by stamp (8 of 11" in proc.stdout

@@ -9,8 +9,8 @@ mounted as the Newer College OS1's, GNSS at 5 Hz; needs ../shared/data/kitti_gt)
 every layout: the same points (subsampled), stamps moved onto each dataset's clock, and the
 true T_world_lidar turned into each dataset's ground-truth frame with the inverse of the
 reader's conversion (so a run scores against the simulated truth). What is not the datasets'
-own: the point content, the calibration values of KITTI-360 (a rigid transform near its
-mounting), the Newer College IMU csv's header text.
+own: the point content and the Newer College IMU csv's header text (its columns are the ones
+steam_icp reads); the KITTI-360 calibration files hold the published values.
 """
 
 from __future__ import annotations
@@ -37,6 +37,33 @@ from lidar_slam.io.sources import KittiSource  # noqa: E402
 N_SCANS = 12
 # A world frame unlike the first lidar frame: the conversions must not cancel by accident.
 T_WORLD_SEQ = rigid(rpy_zyx(0.02, -0.01, 1.1), [350.0, -120.0, 4.0])
+
+# KITTI-360 calibration/calib_cam_to_pose.txt (image_0k: row-major 3x4, given here as R row by
+# row then t), calib_cam_to_velo.txt and calib_sick_to_velo.txt (row-major 3x4)
+KITTI360_CAM_TO_POSE = {
+    "image_00": [0.0371783278, -0.0986182135, 0.9944306009, 0.9992675562, -0.0053553387,
+                 -0.0378902567, 0.0090621821, 0.9951109327, 0.0983468786,
+                 1.5752681039, 0.0043914093, -0.6500000000],
+    "image_01": [0.0194000864, -0.1051529641, 0.9942668106, 0.9997374956, -0.0100836652,
+                 -0.0205732716, 0.0121891942, 0.9944049345, 0.1049297370,
+                 1.5977241400, 0.5981494900, -0.6488433108],
+    "image_02": [0.9995185086, 0.0041276589, -0.0307524527, -0.0307926666, 0.0100608424,
+                 -0.9994751579, -0.0038160970, 0.9999408692, 0.0101830998,
+                 0.7264036936, -0.1499658517, -1.0686400091],
+    "image_03": [-0.9996821702, 0.0005703407, -0.0252038325, -0.0252033830, 0.0007820814,
+                 0.9996820384, 0.0005898709, 0.9999995315, -0.0007674583,
+                 0.7016842127, 0.7463650950, -1.0751978255],
+}
+KITTI360_CAM_TO_VELO = [0.04307104361, -0.08829286498, 0.995162929, 0.8043914418,
+                        -0.999004371, 0.007784614041, 0.04392796942, 0.2993489574,
+                        -0.01162548558, -0.9960641394, -0.08786966659, -0.1770225824]
+KITTI360_SICK_TO_VELO = [0.9998328856, -0.01305514558, -0.01279702916, -0.3971222434,
+                         0.01322436405, 0.9998250388, 0.01322905751, -0.009085164561,
+                         0.0126220829, -0.01339607931, 0.9998305997, -0.07072622777]
+
+
+def _rows(T: np.ndarray) -> np.ndarray:
+    return T[:3, :4].ravel()
 
 
 def simulate(out: Path) -> None:
@@ -182,14 +209,16 @@ def kitti360_(out: Path, scans, stamps, T_wl) -> None:
     (velo / "timestamps.txt").write_text("\n".join(lines) + "\n")
     calib = root / "calibration"
     calib.mkdir()
-    T_pose_cam = {f"image_0{k}": rigid(rpy_zyx(-np.pi / 2 + 0.01 * k, 0.0, -np.pi / 2),
-                                       [1.5 + 0.01 * k, 0.3 - 0.5 * k, 0.05]) for k in range(4)}
-    T_velo_cam0 = rigid(rpy_zyx(-np.pi / 2, 0.004, -np.pi / 2 + 0.04), [0.80, 0.30, -0.18])
+    # The published KITTI-360 calibration (calibration/*.txt), as many tools quote it
+    T_pose_cam = {k: rigid(np.array(v[:9]).reshape(3, 3), v[9:]) for k, v in KITTI360_CAM_TO_POSE
+                  .items()}
+    T_velo_cam0 = np.vstack([np.array(KITTI360_CAM_TO_VELO).reshape(3, 4), [0, 0, 0, 1]])
     (calib / "calib_cam_to_pose.txt").write_text("".join(
-        f"{k}: " + " ".join(f"{v:.9f}" for v in T[:3, :4].ravel()) + "\n"
-        for k, T in T_pose_cam.items()))
-    (calib / "calib_cam_to_velo.txt").write_text(
-        " ".join(f"{v:.9f}" for v in T_velo_cam0[:3, :4].ravel()) + "\n")
+        f"{k}: " + " ".join(f"{x:.10f}" for x in _rows(T)) + "\n" for k, T in T_pose_cam.items()))
+    (calib / "calib_cam_to_velo.txt").write_text(" ".join(f"{x:.10g}" for x in
+                                                          KITTI360_CAM_TO_VELO) + "\n")
+    (calib / "calib_sick_to_velo.txt").write_text(" ".join(f"{x:.10g}" for x in
+                                                           KITTI360_SICK_TO_VELO) + "\n")
     T_pose_velo = T_pose_cam["image_00"] @ inverse(T_velo_cam0)
     T_wp = T_wl @ inverse(T_pose_velo)
     poses = root / "data_poses" / drive
@@ -238,9 +267,10 @@ def main() -> None:
         imu = imu.shifted(0.5 - source.stamps[0])
         gnss = read_gnss_csv(sim / "gnss.csv").shifted(0.5 - source.stamps[0])
     T_wl = T_WORLD_SEQ @ source.ground_truth
-    if args.out.exists():
-        shutil.rmtree(args.out)
-    args.out.mkdir(parents=True)
+    for name in ("newer_college", "mulran", "nclt", "kitti360", "boreas"):  # README.md stays
+        if (args.out / name).exists():
+            shutil.rmtree(args.out / name)
+    args.out.mkdir(parents=True, exist_ok=True)
     newer_college_(args.out, scans, stamps, T_wl, imu)
     mulran_(args.out, scans, stamps, T_wl, imu, gnss)
     nclt_(args.out, scans, stamps, T_wl, imu, gnss)
