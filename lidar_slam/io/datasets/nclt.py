@@ -18,9 +18,12 @@ loader does: lidar frame L = body rotated 180 deg about x (F = diag(1, -1, -1)),
 and T_world_lidar = F @ T_world_body @ F (world z up too). T_world_body from the ground truth
 row: R = Rz(yaw) Ry(pitch) Rx(roll), the site's ssc_to_homo.
 
-No per-point times (velodyne_sync has none). IMU: read, but NCLT publishes no MS25 mounting:
-used only with imu.T_lidar_imu in the config (in the z-up lidar frame above). GPS: fixes with
-mode >= 2; gps.csv has no accuracy, so CONSUMER_GPS_SIGMA_* below (1-sigma, m) are used.
+No per-point times (velodyne_sync has none). IMU: read, but the dataset's files give no MS25
+mounting: used only with imu.T_lidar_imu in the config (in the z-up lidar frame above; ETH's
+nclt_tools, python/sensor_extrinsics.py get_T_B_I, puts it at (-0.11, -0.18, -0.71) m in the body
+frame, axes aligned: in this lidar frame [-0.11, 0.18, 0.71, 180, 0, 0], docs/datasets.md). GPS:
+fixes with mode >= 2 (0 and 1 are no fix: nclt_tools python/sensordata_to_rosbag.py write_gps);
+gps.csv has no accuracy, so CONSUMER_GPS_SIGMA_* below (1-sigma, m) are used.
 """
 
 from __future__ import annotations
