@@ -241,3 +241,17 @@ def test_ground_truth_that_does_not_reach_every_scan(tmp_path):
     proc = _cli("eval", str(out / "poses_tum.txt"), str(seq))
     assert proc.returncode == 0, proc.stderr
     assert "by stamp (8 of 11" in proc.stdout
+
+
+def test_mulran_in_kiss_icps_flat_layout(tmp_path):
+    """SEQ/Ouster/*.bin beside global_pose.csv (kiss-icp's mulran.py) is MulRan too; a bare
+    Ouster/ folder is not (a folder without scans, refused)."""
+    from lidar_slam.errors import InputError
+
+    seq = tmp_path / "DCC01"
+    shutil.copytree(DATA / "mulran/KAIST01/sensor_data/Ouster", seq / "Ouster")
+    with pytest.raises(InputError, match="no scans found"):
+        open_source(seq)
+    shutil.copy(DATA / "mulran/KAIST01/global_pose.csv", seq / "global_pose.csv")
+    source = open_source(seq)
+    assert source.kind == "mulran" and np.isfinite(source.ground_truth).all()

@@ -50,12 +50,13 @@ T_BASE_LIDAR = rigid(rpy_zyx(*np.radians([0.0001, 0.0003, 179.6654])), [1.7042, 
 
 
 def detect(path: Path) -> Path | None:
-    """The sequence folder when path is one (sensor_data/Ouster or Ouster inside), else None."""
-    for root in (path, path.parent if path.name == "sensor_data" else None):
-        if root is not None and ((root / "sensor_data" / "Ouster").is_dir()
-                                 or (root / "Ouster").is_dir() and (root / "global_pose.csv")
-                                 .is_file()):
-            return root
+    """The sequence folder when path is one, or its sensor_data/, else None. kiss-icp's bare
+    Ouster/ folder counts only beside global_pose.csv (a folder named Ouster alone says little)."""
+    root = path.parent if path.name == "sensor_data" else path
+    if (root / "sensor_data" / "Ouster").is_dir():
+        return root
+    if (root / "Ouster").is_dir() and (root / "global_pose.csv").is_file():
+        return root
     return None
 
 
