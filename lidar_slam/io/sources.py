@@ -15,16 +15,15 @@ from typing import Protocol
 import numpy as np
 
 from lidar_slam.errors import InputError
-from lidar_slam.io.inertial_input import SensorStreams
+from lidar_slam.io.datasets.common import Carried
 from lidar_slam.io.point_times import relative_seconds
-from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, read_bin, read_cloud
+from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, make_scan, read_bin, read_cloud
 from lidar_slam.io.trajectory import (
     camera_to_lidar_poses,
-    check_stamp,
     read_kitti_calib_tr,
     read_kitti_poses,
+    read_kitti_raw_timestamps,
     read_times,
-    text_lines,
 )
 from lidar_slam.types import Scan
 
@@ -34,13 +33,13 @@ DEFAULT_PERIOD_S = 0.1
 
 class ScanSource(Protocol):
     name: str
-    kind: str  # "folder", "file", "kitti", "kitti_raw" or "rosbag" (reported in summary.json)
+    kind: str  # "folder", "file", "kitti", "kitti_raw", "rosbag" or a dataset (io.datasets)
     topic: str | None  # the bag topic read, None for other inputs
     ground_truth: np.ndarray | None
     stamps: np.ndarray  # stamp (s) of every input scan, as Scan.stamp_s
     # IMU / GNSS / T_lidar_imu read from the same file as the scans (sensor pcaps); None: found
     # beside the scans or in the bag by io.inertial_input.load_inertial
-    sensor_streams: SensorStreams | None
+    sensor_streams: Carried | None
 
     @property
     def input_notes(self) -> dict[str, int]: ...  # what was dropped or recovered (summary.json)
@@ -48,23 +47,6 @@ class ScanSource(Protocol):
     def __len__(self) -> int: ...
 
     def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]: ...
-
-
-def make_scan(index: int, stamp_s: float, cloud: CloudData, source: str) -> Scan:
-    """Build a Scan, dropping points with NaN/inf coordinates (counted in the log)."""
-    points, times, inten = cloud.points, cloud.times, cloud.intensity
-    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: NaN, no warning
-        # One contiguous sum: a NaN/inf anywhere makes it non-finite (3x faster than per row).
-        suspect = not np.isfinite(np.add.reduce(points.ravel()))
-    finite = np.isfinite(points).all(axis=1) if suspect else None
-    if finite is not None and not finite.all():  # (an overflowing finite sum lands here too)
-        log.warning("%s: dropped %d points with NaN/inf coordinates", source, int((~finite).sum()))
-        points = points[finite]
-        times = times[finite] if times is not None else None
-        inten = inten[finite] if inten is not None else None
-    if times is not None and not np.isfinite(times).all():
-        times = None
-    return Scan(index, float(stamp_s), points, times, inten, source)
 
 
 def natural_key(name: str) -> list:
@@ -215,32 +197,6 @@ class KittiSource:
             yield make_scan(i, self.stamps[i], cloud, str(self.files[i]))
 
 
-def read_kitti_raw_timestamps(path: Path) -> np.ndarray:
-    """KITTI raw timestamps.txt ('2011-09-26 13:02:25.964389445' per line) -> seconds since the
-    UNIX epoch, the clock taken as UTC (the fraction is kept to the nanosecond); they must
-    increase strictly."""
-    from datetime import datetime, timezone
-
-    stamps: list[float] = []
-    prev_line = 0
-    for n, line in enumerate(text_lines(path, "timestamps file"), 1):
-        if not line.strip():
-            continue
-        whole, _, frac = line.strip().partition(".")
-        try:
-            if frac and not frac.isdigit():
-                raise ValueError(frac)
-            t = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc)
-            stamp = t.timestamp() + (float("0." + frac) if frac else 0.0)
-        except ValueError:
-            raise InputError(path, f"line {n}: not a 'YYYY-MM-DD HH:MM:SS.fraction' stamp "
-                                   f"({line.strip()[:40]!r})") from None
-        check_stamp(path, n, stamp, prev_line, stamps[-1] if stamps else None)
-        stamps.append(stamp)
-        prev_line = n
-    return np.array(stamps, dtype=np.float64)
-
-
 class KittiRawSource:
     """A KITTI raw drive: velodyne_points/data/*.bin with velodyne_points/timestamps.txt (the
     drive folder or its velodyne_points folder). No ground truth (the raw drives' OXTS poses are
@@ -305,8 +261,8 @@ def correct_kitti_scan(points: np.ndarray, angle_deg: float = 0.205) -> np.ndarr
 def open_source(path: str | Path, topic: str | None = None, kitti_vertical_correction: bool = False,
                 meta: Path | None = None) -> ScanSource:
     """Pick the reader for a path: rosbag/mcap, sensor pcap (`meta`: an Ouster's metadata JSON),
-    KITTI sequence, KITTI raw drive, a folder of scans or one scan file. `topic` only applies to
-    bags (a warning otherwise)."""
+    a public dataset's sequence (io.datasets), KITTI sequence, KITTI raw drive, a folder of scans
+    or one scan file. `topic` only applies to bags (a warning otherwise)."""
     p = Path(path)
     if not p.exists():
         raise InputError(p, "does not exist")
@@ -323,6 +279,12 @@ def open_source(path: str | Path, topic: str | None = None, kitti_vertical_corre
         return open_pcap(p, meta)
     if meta is not None:
         log.warning("--meta %s ignored: %s is not a pcap", meta, p)
+    if p.is_dir():
+        from lidar_slam.io.datasets import open_dataset  # the public dataset layouts
+
+        dataset = open_dataset(p)
+        if dataset is not None:
+            return dataset
     if p.is_file():
         if p.suffix.lower() in SCAN_SUFFIXES:
             return FolderSource(p)

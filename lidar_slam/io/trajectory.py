@@ -155,3 +155,29 @@ def text_lines(p: Path, what: str) -> list[str]:
         raise InputError(p, f"not a text file (byte {exc.start} is not UTF-8)") from None
     except OSError as exc:
         raise InputError(p, f"cannot read {what} ({exc.strerror or exc})") from None
+
+
+def read_kitti_raw_timestamps(path: Path) -> np.ndarray:
+    """KITTI raw timestamps.txt ('2011-09-26 13:02:25.964389445' per line) -> seconds since the
+    UNIX epoch, the clock taken as UTC (the fraction is kept to the nanosecond); they must
+    increase strictly."""
+    from datetime import datetime, timezone
+
+    stamps: list[float] = []
+    prev_line = 0
+    for n, line in enumerate(text_lines(path, "timestamps file"), 1):
+        if not line.strip():
+            continue
+        whole, _, frac = line.strip().partition(".")
+        try:
+            if frac and not frac.isdigit():
+                raise ValueError(frac)
+            t = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc)
+            stamp = t.timestamp() + (float("0." + frac) if frac else 0.0)
+        except ValueError:
+            raise InputError(path, f"line {n}: not a 'YYYY-MM-DD HH:MM:SS.fraction' stamp "
+                                   f"({line.strip()[:40]!r})") from None
+        check_stamp(path, n, stamp, prev_line, stamps[-1] if stamps else None)
+        stamps.append(stamp)
+        prev_line = n
+    return np.array(stamps, dtype=np.float64)

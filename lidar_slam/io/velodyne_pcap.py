@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.datasets.common import Carried
 from lidar_slam.io.inertial import gnss_from_rows
-from lidar_slam.io.inertial_input import SensorStreams
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)
@@ -100,8 +100,8 @@ class VelodynePcapSource:
         self.stamps = np.array(stamps)
         gnss, why = _gnss(path, telemetry) if telemetry else (None, f"{path}: no position "
                                                                         "packets")
-        self.sensor_streams = SensorStreams(None, gnss, None, why_no_imu=f"{path}: no IMU is "
-                                            "read from a Velodyne pcap", why_no_gnss=why)
+        self.sensor_streams = Carried(gnss=gnss, why_not=(
+            ("imu", f"{path}: no IMU is read from a Velodyne pcap"), ("gnss", why)))
 
     @property
     def input_notes(self) -> dict[str, int]:

@@ -159,9 +159,17 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary["path_length_m"] = metrics.path_length_m(poses)
         if ground_truth is not None:
             gt = ground_truth[np.asarray(result.indices)]
-            summary.update(run_summary_metrics(poses, gt))
-            if cfg.loop.enabled:  # the same ATE before loop closure, for comparison
-                summary["odometry_ate_rmse_m"] = metrics.ate(odom, inverse(gt[0]) @ gt).rmse_m
+            # A dataset's ground truth may not reach every scan (NaN rows): scored where it does
+            covered = np.isfinite(gt).all(axis=(1, 2))
+            est, odo = poses, odom
+            if not covered.all():
+                summary["ground_truth_frames"] = int(covered.sum())
+                est, odo, gt = (inverse(T[covered][0]) @ T[covered] if covered.any() else T[:0]
+                                for T in (poses, odom, gt))
+            if len(gt):
+                summary.update(run_summary_metrics(est, gt))
+                if cfg.loop.enabled:  # the same ATE before loop closure, for comparison
+                    summary["odometry_ate_rmse_m"] = metrics.ate(odo, inverse(gt[0]) @ gt).rmse_m
     if cfg.loop.enabled:
         summary.update(write_loops(out_dir, result))
     if result.adaptive:

@@ -157,16 +157,19 @@ def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: s
     return load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
                          gnss_enabled=cfg.gnss.enabled, imu_offset_s=cfg.imu.time_offset_s,
                          gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
-                         gnss_topic=gnss_topic, carried=source.sensor_streams)
+                         gnss_topic=gnss_topic, carried=source.sensor_streams,
+                         imu_mount_given="T_lidar_imu" in cfg.imu.model_fields_set)
 
 
-def _sensor_mounting(cfg, source):
-    """The config with imu.T_lidar_imu from the recording's own metadata (an Ouster pcap's
-    imu_to_sensor_transform) when the config does not set it: a config value always wins."""
-    streams = source.sensor_streams
-    if streams is None or streams.T_lidar_imu is None or "T_lidar_imu" in cfg.imu.model_fields_set:
+def _mounting_from_input(cfg, source):
+    """The config with the IMU mounting the input's own calibration gives (a public dataset's,
+    io.datasets; an Ouster pcap's metadata), when the config does not give one itself: a value
+    in the config always wins."""
+    carried = source.sensor_streams
+    if carried is None or carried.T_lidar_imu is None or \
+            "T_lidar_imu" in cfg.imu.model_fields_set:
         return cfg
-    values = [round(float(v), 9) + 0.0 for v in streams.T_lidar_imu.ravel()]
+    values = [round(float(v), 9) + 0.0 for v in carried.T_lidar_imu.ravel()]
     imu = cfg.imu.model_copy(update={"T_lidar_imu": values})
     return cfg.model_copy(update={"imu": imu})
 
@@ -227,10 +230,10 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction, meta=meta)
     total = scan_range(data, start, n_scans, len(source))
-    own_mounting = _sensor_mounting(cfg, source)
+    own_mounting = _mounting_from_input(cfg, source)
     inertial = _load_inertial(data, source, own_mounting, imu_topic, gnss_topic)
     if own_mounting is not cfg and inertial.imu is not None:
-        inertial.summary["imu"]["T_lidar_imu_from"] = "the sensor's metadata"
+        inertial.summary["imu"]["T_lidar_imu_from"] = f"the input's own calibration ({source.kind})"
     cfg = own_mounting
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
