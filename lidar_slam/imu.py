@@ -115,6 +115,27 @@ class ImuStream:
         return pim
 
 
+def predict_pose(pim: gtsam.PreintegratedCombinedMeasurements, T_world_imu: np.ndarray,
+                 v_world: np.ndarray, bias6: np.ndarray) -> np.ndarray:
+    """T_world_imu (4x4) at the end of `pim` from the state at its start and the bias it is
+    corrected about (6 values in gtsam's ConstantBias.vector() order: accel, then gyro)."""
+    bias = bias_from_vector(bias6)
+    start = gtsam.NavState(gtsam.Pose3(np.asarray(T_world_imu, dtype=float)),
+                           np.asarray(v_world, dtype=float))
+    return pim.predict(start, bias).pose().matrix()
+
+
+def bias_from_vector(bias6: np.ndarray) -> gtsam.imuBias.ConstantBias:
+    """gtsam's bias from 6 values in its vector() order: accel, then gyro."""
+    b = np.asarray(bias6, dtype=float)
+    return gtsam.imuBias.ConstantBias(b[:3], b[3:])
+
+
+def closest_rotation(H: np.ndarray) -> np.ndarray:
+    """The rotation R maximising tr(R^T H) (gtsam's Rot3.ClosestTo: the Kabsch solution)."""
+    return np.asarray(gtsam.Rot3.ClosestTo(np.asarray(H, dtype=float)).matrix(), dtype=np.float64)
+
+
 def gravity_rotation(specific_force: np.ndarray) -> np.ndarray:
     """R_world_imu (3x3), the smallest rotation taking the direction of specific_force (IMU frame)
     to +z of a z-up world."""

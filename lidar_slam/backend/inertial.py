@@ -22,7 +22,6 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import gtsam
 import numpy as np
 
 from lidar_slam.backend import gnss as gnss_align
@@ -31,7 +30,13 @@ from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.geo import LocalEnu
 from lidar_slam.geometry import interpolate, inverse, make_pose
-from lidar_slam.imu import ImuStream, combined_params, gravity_rotation
+from lidar_slam.imu import (
+    ImuStream,
+    bias_from_vector,
+    combined_params,
+    gravity_rotation,
+    predict_pose,
+)
 from lidar_slam.io.inertial import GnssFixes, ImuSamples
 
 log = logging.getLogger(__name__)
@@ -149,15 +154,13 @@ def imu_frame_poses(links: list[inertial_graph.ImuLink], sol: inertial_graph.Ine
         inside = np.flatnonzero((frame_stamps_s > t0) & (frame_stamps_s < t1))
         if not len(inside):
             continue
-        bias = gtsam.imuBias.ConstantBias(np.asarray(sol.biases[ln.i][:3], dtype=float),
-                                          np.asarray(sol.biases[ln.i][3:], dtype=float))
-        start = gtsam.NavState(gtsam.Pose3(sol.poses[ln.i]),
-                               np.asarray(sol.velocities[ln.i], dtype=float))
-        T_end = ln.pim.predict(start, bias).pose().matrix()
+        bias6, v0 = sol.biases[ln.i], sol.velocities[ln.i]
+        bias = bias_from_vector(bias6)
+        T_end = predict_pose(ln.pim, sol.poses[ln.i], v0, bias6)
         mismatch = sol.poses[ln.j] @ inverse(T_end)
         for f in inside.tolist():
             t = float(frame_stamps_s[f])
-            T = stream.preintegrate(t0, t, params, bias).predict(start, bias).pose().matrix()
+            T = predict_pose(stream.preintegrate(t0, t, params, bias), sol.poses[ln.i], v0, bias6)
             out[f] = interpolate(T, mismatch @ T, (t - t0) / (t1 - t0))
     return out
 

@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import logging
 
-import gtsam
 import numpy as np
 
-from lidar_slam.imu import ImuStream
+from lidar_slam.geometry import rotvec_from_matrix
+from lidar_slam.imu import ImuStream, closest_rotation
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ MAX_DISAGREEMENTS = 3
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R)), dtype=np.float64)
+    return rotvec_from_matrix(R)
 
 
 class ImuCheck:
@@ -153,8 +153,7 @@ class ImuCheck:
         if spread[1] < MOUNT_MIN_SPREAD * spread[0]:
             return None  # turning about one axis only: a rotation about it is not seen
         self.mount_checked = True
-        R = gtsam.Rot3.ClosestTo(H)
-        axis_angle = np.asarray(gtsam.Rot3.Logmap(R))
+        axis_angle = rotvec_from_matrix(closest_rotation(H))
         self.mount_error_deg = float(np.degrees(np.linalg.norm(axis_angle)))
         if self.mount_error_deg > MAX_MOUNT_DEG:
             axis = axis_angle / np.linalg.norm(axis_angle)
