@@ -3,7 +3,7 @@ odometry's variance checked against the IMU (lidar_slam.backend.inertial.odometr
 
 import numpy as np
 
-from lidar_slam.backend.factors import BetweenFactor
+from lidar_slam.backend.factors import BetweenFactor, with_rotation_floor
 from lidar_slam.backend.inertial import odometry_variance
 from lidar_slam.config import OdometryInformationConfig
 from lidar_slam.frontend.edge_information import EdgeInformation
@@ -61,6 +61,19 @@ def test_noisier_clouds_give_a_less_certain_edge_and_the_floor_holds():
     assert np.all((sharp[3:] >= cfg.min_trans_sigma_m) & (sharp[3:] < 1.5 * cfg.min_trans_sigma_m))
     rot_deg = np.degrees(sharp[:3])
     assert np.all((rot_deg >= cfg.min_rot_sigma_deg) & (rot_deg < 1.5 * cfg.min_rot_sigma_deg))
+
+
+def test_the_imu_solves_rotation_floor_is_the_edge_measured_with_that_floor():
+    # backend.inertial_odom_min_rot_sigma_deg: the same clouds measured with the lower floor
+    # directly, not a scaled copy (a uniform scale would also tighten the translation)
+    rng = np.random.default_rng(2)
+    a, b = _room(rng, 0.02), _room(rng, 0.02) - [0.5, 0, 0]
+    low = OdometryInformationConfig(min_rot_sigma_deg=0.02)
+    moved = with_rotation_floor(_edge(a, b), OdometryInformationConfig().min_rot_sigma_deg, 0.02)
+    np.testing.assert_allclose(moved, _edge(a, b, low), rtol=1e-6)
+    before, after = _sigmas(_edge(a, b)), _sigmas(moved)
+    assert np.all(after[:3] < before[:3] - np.radians(0.01)), (before, after)
+    np.testing.assert_allclose(after[3:], before[3:], rtol=1e-9)  # translation as measured
 
 
 def test_an_empty_keyframe_has_no_edge_information():

@@ -58,6 +58,16 @@ def sigmas_to_information(rot_sigma_deg: float, trans_sigma_m: float, dims: Dims
     return np.diag(1.0 / sigmas**2)
 
 
+def with_rotation_floor(info: np.ndarray, floor_deg: float, new_floor_deg: float) -> np.ndarray:
+    """The information of an edge measured with rotation floor `floor_deg` as if it had been
+    floored at `new_floor_deg` instead: the covariance's rotation diagonal moved by the
+    difference of the floors' variances (exact: the floor was added to the measured covariance)."""
+    cov = np.linalg.inv(info)
+    cov[:3, :3] += np.eye(3) * (np.radians(new_floor_deg) ** 2 - np.radians(floor_deg) ** 2)
+    out = np.linalg.inv(cov)
+    return 0.5 * (out + out.T)
+
+
 def check_information(information: np.ndarray, dims: Dims) -> np.ndarray:
     """Validated float64 copy of a symmetric positive-definite information matrix."""
     n = tangent_size(dims)

@@ -26,7 +26,7 @@ import numpy as np
 
 from lidar_slam.backend import gnss as gnss_align
 from lidar_slam.backend import gtsam_graph, inertial_graph
-from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
+from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information, with_rotation_floor
 from lidar_slam.config import SlamConfig
 from lidar_slam.geo import LocalEnu
 from lidar_slam.geometry import interpolate, inverse, make_pose
@@ -220,11 +220,15 @@ def _edges_between_imus(edges: list[BetweenFactor], Cn: dict[int, np.ndarray]
 def _inertial_odometry(cfg: SlamConfig, edges: list[BetweenFactor],
                        measured: dict[int, np.ndarray]) -> list[BetweenFactor]:
     """The odometry edges with the kernel of a solve with the IMU (huber_k) and their own
-    information where it was measured (measured: keyed by the edge's second keyframe), else the
-    config's backend.inertial_odom_*; loops as they are."""
+    information where it was measured (measured: keyed by the edge's second keyframe; its rotation
+    floor moved to backend.inertial_odom_min_rot_sigma_deg), else the config's
+    backend.inertial_odom_*; loops as they are."""
     b = cfg.backend
     info = sigmas_to_information(b.inertial_odom_rot_sigma_deg, b.inertial_odom_trans_sigma_m)
-    return [e if e.is_loop else dataclasses.replace(e, information=measured.get(e.j, info),
+    floor, new_floor = b.odom_information.min_rot_sigma_deg, b.inertial_odom_min_rot_sigma_deg
+    own = {j: info_j if floor == new_floor else with_rotation_floor(info_j, floor, new_floor)
+           for j, info_j in measured.items()}
+    return [e if e.is_loop else dataclasses.replace(e, information=own.get(e.j, info),
                                                     robust_k=b.huber_k)
             for e in edges]
 
