@@ -1,0 +1,137 @@
+"""`lidar-slam merge` on simulated sessions, scored against their truth.
+
+    python tools/merge_bench.py --root DIR [--sessions 3] [--motion handheld] [--world indoor]
+                                [--duration-s 30] [--seed 1] [--changes 10] [--json FILE]
+
+Simulates DIR/sim (`simulate --sessions`), runs each session (`run`, DIR/runs/<i>) and merges
+them (`merge`, DIR/merged), each step skipped when its folder is already there, then prints:
+
+- keyframe error: every merged keyframe's position against its truth (truth_world.txt at the
+  keyframe's frame) after ONE rigid alignment of the whole merged map to the truth (m: mean,
+  95th percentile, max; target max <= 0.10 m);
+- overlap linked: of the keyframes that truly overlap another session (a keyframe of it within
+  OVERLAP_M, truth), the share that take part in a loop to that session kept by the solve
+  (target >= 95 %);
+- wrong loops: loops kept by the solve whose measured relative pose (loops.csv) is off the
+  truth's by more than WRONG_M or WRONG_DEG (target 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lidar_slam.eval.metrics import umeyama_rigid
+from lidar_slam.geometry import inverse, rotation_angle_deg
+from lidar_slam.io.trajectory import read_kitti_poses
+from lidar_slam.map.saved import open_map
+
+OVERLAP_M = 2.0
+WRONG_M = 0.5
+WRONG_DEG = 3.0
+
+
+def _cli(*args) -> None:
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", *map(str, args)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"lidar-slam {' '.join(map(str, args))} failed: {proc.stderr[-2000:]}")
+
+
+def evaluate(sim: Path, merged: Path) -> dict:
+    """The three scores of a merged map (see the module doc) against sim's truth."""
+    with open(merged / "sessions" / "keyframes.csv") as fh:
+        rows = [(int(r["session"]), int(r["session_keyframe"]), int(r["frame"]))
+                for r in csv.DictReader(fh)]
+    truth = {}
+    saved = open_map(merged)
+    est = saved.T_map_kf.copy()
+    saved.close()
+    gt = np.stack([_truth(truth, sim, s, f) for s, _, f in rows])
+    T = umeyama_rigid(est[:, :3, 3], gt[:, :3, 3])
+    err = np.linalg.norm(est[:, :3, 3] @ T[:3, :3].T + T[:3, 3] - gt[:, :3, 3], axis=1)
+    where = {(s, k): i for i, (s, k, _) in enumerate(rows)}
+    linked, wrong, kept = set(), [], 0
+    with open(merged / "loops.csv") as fh:
+        for r in csv.DictReader(fh):
+            if r["kept"] != "1":
+                continue
+            kept += 1
+            a, b = (int(r["session_a"]), int(r["keyframe_a"])), (int(r["session_b"]),
+                                                                 int(r["keyframe_b"]))
+            ia, ib = where[a], where[b]
+            linked |= {(a, b[0]), (b, a[0])}
+            T_ab = np.eye(4)
+            T_ab[:3] = np.array(r["T_a_b"].split(), dtype=float).reshape(3, 4)
+            d = inverse(inverse(gt[ia]) @ gt[ib]) @ T_ab
+            if np.linalg.norm(d[:3, 3]) > WRONG_M or rotation_angle_deg(d) > WRONG_DEG:
+                wrong.append((a, b, float(np.linalg.norm(d[:3, 3])),
+                              float(rotation_angle_deg(d))))
+    sessions = sorted({s for s, _, _ in rows})
+    overlapping = []
+    for i, (s, k, _) in enumerate(rows):
+        for o in sessions:
+            if o == s:
+                continue
+            other = [j for j, r in enumerate(rows) if r[0] == o]
+            if np.linalg.norm(gt[other, :3, 3] - gt[i, :3, 3], axis=1).min() < OVERLAP_M:
+                overlapping.append(((s, k), o))
+    n_linked = sum(1 for kf, o in overlapping if (kf, o) in linked)
+    left_out = [json.loads(p.read_text()) for p in sorted((merged / "sessions").glob(
+        "*/summary.json"))]
+    return {"keyframes": len(rows), "sessions_kept": len(sessions),
+            "sessions_left_out": [d["run"] for d in left_out if not d["kept"]],
+            "keyframe_error_mean_m": float(err.mean()),
+            "keyframe_error_p95_m": float(np.percentile(err, 95)),
+            "keyframe_error_max_m": float(err.max()),
+            "overlapping_keyframes": len(overlapping), "overlapping_linked": n_linked,
+            "overlap_linked_pct": 100.0 * n_linked / max(len(overlapping), 1),
+            "loops_kept": kept, "wrong_loops": len(wrong), "wrong": wrong[:10]}
+
+
+def _truth(cache: dict, sim: Path, session: int, frame: int) -> np.ndarray:
+    if session not in cache:
+        cache[session] = read_kitti_poses(sim / f"session_{session}" / "truth_world.txt")
+    return cache[session][frame]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--sessions", type=int, default=3)
+    ap.add_argument("--motion", default="handheld")
+    ap.add_argument("--world", default=None)
+    ap.add_argument("--duration-s", type=float, default=30.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--changes", type=int, default=10)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    sim, runs, merged = args.root / "sim", args.root / "runs", args.root / "merged"
+    t0 = time.perf_counter()
+    if not (sim / "changes.json").is_file():
+        _cli("simulate", "--motion", args.motion, "--sessions", args.sessions, "--seed",
+             args.seed, "--duration-s", args.duration_s, "--changes", args.changes, "--out", sim,
+             "--overwrite", *(("--world", args.world) if args.world else ()))
+    for i in range(args.sessions):
+        if not (runs / str(i) / "summary.json").is_file():
+            _cli("run", sim / f"session_{i}", "--out", runs / str(i), "--overwrite")
+    t1 = time.perf_counter()
+    _cli("merge", *(runs / str(i) for i in range(args.sessions)), "--out", merged,
+         "--overwrite")
+    scores = {"merge_s": time.perf_counter() - t1, "setup_s": t1 - t0,
+              **evaluate(sim, merged)}
+    for key, value in scores.items():
+        print(f"{key:24s} {value:.3f}" if isinstance(value, float) else f"{key:24s} {value}")
+    if args.json:
+        args.json.write_text(json.dumps(scores, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
