@@ -75,7 +75,6 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
             sessions.append(open_session(i, run))
         prepare_out_dir(out, MERGE_OUTPUTS, overwrite)
         cfg = sessions[reference].map.cfg
-        _warn_differing_descriptors(sessions, cfg)
         loops, search = find_loops(sessions, cfg, max_verify)
         anc = anchors(sessions, loops, reference, min_loops)
         sol = solve(sessions, loops, anc, reference)
@@ -104,14 +103,6 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
 
 def _kept(loops: list[SessionLoop], sol: JointSolution) -> list[SessionLoop]:
     return [lp for lp, k in zip(loops, sol.kept) if k]
-
-
-def _warn_differing_descriptors(sessions: list[Session], cfg) -> None:
-    ref = cfg.loop.scan_context
-    for s in sessions:
-        if s.map.cfg.loop.scan_context != ref:
-            log.warning("%s: Scan Context settings differ from the reference's (%s): its "
-                        "descriptors may not match", s.run_dir, s.map.cfg.loop.scan_context)
 
 
 def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search: LoopSearch,

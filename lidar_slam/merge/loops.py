@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_slam.config import SlamConfig
-from lidar_slam.loop.scan_context import column_distances, shift_to_yaw
+from lidar_slam.loop.scan_context import column_distances, describe, shift_to_yaw
 from lidar_slam.loop.verify import Side, match_side, query_side, verify
 from lidar_slam.merge.session import Session
 from lidar_slam.types import LoopCandidate
@@ -46,11 +46,27 @@ class LoopSearch:
     accepted: int = 0
 
 
-class _Grids:
-    """One session's descriptors: ids of keyframes with points, grids, ring keys."""
+def descriptor_shape(cfg: SlamConfig) -> tuple:
+    """What makes two runs' descriptors comparable (a run fixes its radius from its first scan:
+    two sessions of one place may not agree)."""
+    sc = cfg.loop.scan_context
+    return sc.rings, sc.sectors, sc.max_radius_m, sc.level_to_ground
 
-    def __init__(self, session: Session):
-        self.ids, self.grids = session.map.descriptor_grids()
+
+class _Grids:
+    """One session's descriptors: ids of keyframes with points, grids, ring keys; the run's
+    stored grids when they were made as cfg makes them, else computed again with cfg's."""
+
+    def __init__(self, session: Session, cfg: SlamConfig):
+        if descriptor_shape(session.map.cfg) == descriptor_shape(cfg):
+            self.ids, self.grids = session.map.descriptor_grids()
+        else:
+            sc = cfg.loop.scan_context
+            self.ids = np.flatnonzero(session.map.counts > 0)
+            self.grids = np.stack([describe(session.map.keyframe(int(k)).points
+                                            .astype(np.float64), sc).grid for k in self.ids])
+            log.info("%s: descriptors computed again with the reference's (radius %s m)",
+                     session.run_dir, sc.max_radius_m)
         self.ring_keys = self.grids.mean(axis=2)
 
 
@@ -77,7 +93,7 @@ def find_loops(sessions: list[Session], cfg: SlamConfig, max_verify: int = 3
     """Verified loops between every pair of sessions, both ways (each keyframe of b queried
     among a's and each of a's among b's); per query keyframe the best max_verify candidates
     are verified until one is accepted. Verification sides are built once per keyframe."""
-    grids = {s.index: _Grids(s) for s in sessions}
+    grids = {s.index: _Grids(s, cfg) for s in sessions}
     vcfg = cfg.loop.verify
     radius = vcfg.submap_radius
     stats = LoopSearch()

@@ -93,20 +93,23 @@ def open_session(index: int, run_dir: str | Path) -> Session:
 
 
 def _graph_edges(path: Path, saved: SavedMap) -> tuple[list[G2oEdge], list[G2oEdge]]:
-    """The run's keyframe graph (odometry between consecutive keyframes, and loops); without
-    graph.g2o, odometry from the final poses with fixed sigmas and no loops."""
+    """Odometry between consecutive keyframes and the run's loops. The odometry's measurement
+    is the run's final relative pose (with an IMU or GNSS the run's final poses come from its
+    inertial solve, better than the keyframe graph's lidar odometry), its information the keyframe
+    graph's (graph.g2o); without graph.g2o, fixed sigmas and no loops."""
     n = len(saved)
+    T = saved.T_map_kf
+    infos: dict[int, np.ndarray] = {}
+    loops: list[G2oEdge] = []
     if path.is_file():
         g2o = read_g2o(path)
-        keys = set(g2o.poses)
-        if keys == set(range(n)):
-            odo = [e for e in g2o.edges if e.j == e.i + 1]
+        if set(g2o.poses) == set(range(n)):
+            infos = {e.i: e.information for e in g2o.edges if e.j == e.i + 1}
             loops = [e for e in g2o.edges if e.j != e.i + 1]
-            if len(odo) == n - 1:
-                return odo, loops
-        log.warning("%s: nodes are not the %d keyframes; odometry from the final poses", path, n)
+        else:
+            log.warning("%s: nodes are not the %d keyframes; fixed odometry sigmas", path, n)
     from lidar_slam.backend.factors import sigmas_to_information
 
-    info = sigmas_to_information(ODOMETRY_ROT_SIGMA_DEG, ODOMETRY_TRANS_SIGMA_M, 3)
-    T = saved.T_map_kf
-    return [G2oEdge(k, k + 1, inverse(T[k]) @ T[k + 1], info) for k in range(n - 1)], []
+    fixed = sigmas_to_information(ODOMETRY_ROT_SIGMA_DEG, ODOMETRY_TRANS_SIGMA_M, 3)
+    return [G2oEdge(k, k + 1, inverse(T[k]) @ T[k + 1], infos.get(k, fixed))
+            for k in range(n - 1)], loops

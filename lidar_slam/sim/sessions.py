@@ -103,7 +103,7 @@ def _draw_box(rng: np.random.Generator, path: LoopPath, motion: str, ground) -> 
     normal = np.array([-np.sin(yaw), np.cos(yaw)]) * rng.choice([-1.0, 1.0])
     if motion == "car":
         length, width, height = rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.6)
-        offset = rng.uniform(3.6, 4.6)
+        offset = rng.uniform(3.6, 9.0)
     else:
         length, width, height = rng.uniform(0.5, 1.2), rng.uniform(0.4, 0.7), rng.uniform(0.7, 1.6)
         offset = rng.uniform(1.2, 1.5)
@@ -135,7 +135,7 @@ def draw_changes(site: Site, motion: str, n_sessions: int, n_changes: int, seed:
                    for o in taken)
 
     def place(near: Box | None = None) -> Box:
-        for _ in range(500):
+        for _ in range(2000):
             box = _draw_box(rng, site.path, motion, site.ground)
             if near is not None:  # moved: the same object a few metres away
                 box = Box(box.x, box.y, box.yaw, near.length, near.width, box.z0,
