@@ -1,7 +1,8 @@
 """`lidar-slam merge` on simulated sessions, scored against their truth.
 
     python tools/merge_bench.py --root DIR [--sessions 3] [--motion handheld] [--world indoor]
-                                [--duration-s 30] [--seed 1] [--changes 10] [--json FILE]
+                                [--duration-s 30] [--seed 1] [--changes 10] [--imu]
+                                [--json FILE]
 
 Simulates DIR/sim (`simulate --sessions`), runs each session (`run`, DIR/runs/<i>) and merges
 them (`merge`, DIR/merged), each step skipped when its folder is already there, then prints:
@@ -111,6 +112,7 @@ def main() -> None:
     ap.add_argument("--duration-s", type=float, default=30.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--changes", type=int, default=10)
+    ap.add_argument("--imu", action="store_true", help="simulate an IMU too (runs use it)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     sim, runs, merged = args.root / "sim", args.root / "runs", args.root / "merged"
@@ -118,7 +120,8 @@ def main() -> None:
     if not (sim / "changes.json").is_file():
         _cli("simulate", "--motion", args.motion, "--sessions", args.sessions, "--seed",
              args.seed, "--duration-s", args.duration_s, "--changes", args.changes, "--out", sim,
-             "--overwrite", *(("--world", args.world) if args.world else ()))
+             "--overwrite", *(("--world", args.world) if args.world else ()),
+             *(("--imu",) if args.imu else ()))
     for i in range(args.sessions):
         if not (runs / str(i) / "summary.json").is_file():
             _cli("run", sim / f"session_{i}", "--out", runs / str(i), "--overwrite")

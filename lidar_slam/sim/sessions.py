@@ -202,12 +202,14 @@ class SessionsSummary:
     seconds: float
 
 
-def _session_path(site: Site, motion: str, i: int, n: int, seed: int) -> LoopPath:
-    """Session i's loop: the site's polygon from its own start, odd sessions reversed."""
+def _session_path(site: Site, motion: str, i: int, n: int, seed: int, spread: float
+                  ) -> LoopPath:
+    """Session i's loop: the site's polygon from its own start (spread round spread x the
+    lap), odd sessions reversed."""
     rng = np.random.default_rng([seed, 60, i])
     lap = float(np.sum(np.linalg.norm(np.diff(np.r_[site.corners, site.corners[:1]], axis=0),
                                       axis=1)))
-    start = lap * (i / n + float(rng.uniform(0.0, 0.5 / n)))
+    start = lap * spread * (i + float(rng.uniform(0.0, 0.5))) / n
     corner = 3.0 if motion == "car" else 0.6
     return LoopPath.polygon(site.corners, corner, bool(i % 2), start)
 
@@ -216,8 +218,11 @@ def simulate_sessions(out_dir: str | Path, n_sessions: int, motion: str, world_k
                       seed: int, duration_s: float, sensor: str | LidarModel = "os1-64",
                       n_changes: int = 10, imu: ImuOptions | None = None,
                       gnss: GnssOptions | None = None,
-                      on_scan: Callable[[int], None] | None = None) -> SessionsSummary:
-    """n_sessions sequences of one seeded world (see the module doc) into out_dir."""
+                      on_scan: Callable[[int], None] | None = None, spread: float = 1.0
+                      ) -> SessionsSummary:
+    """n_sessions sequences of one seeded world (see the module doc) into out_dir; the
+    sessions start round spread x the lap (1: evenly round it; less: closer together, for
+    short sessions that still overlap)."""
     from lidar_slam.sim.sequence import write_sequence
 
     if motion not in SESSION_MOTIONS:
@@ -238,7 +243,7 @@ def simulate_sessions(out_dir: str | Path, n_sessions: int, motion: str, world_k
         boxes = [(c.cls, c.box_in(i)) for c in changes if c.box_in(i) is not None]
         site = Site(site.kind, with_objects(site.world, boxes), site.path, site.ground,
                     site.ceiling_m, site.corners)
-        path = _session_path(site, motion, i, n_sessions, seed)
+        path = _session_path(site, motion, i, n_sessions, seed, spread)
         session_seed = seed * 1000 + i
         if motion == "car":
             traj = car_motion(path, site, session_seed, duration_s, sensor.mount_height_m)
