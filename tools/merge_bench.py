@@ -14,7 +14,12 @@ them (`merge`, DIR/merged), each step skipped when its folder is already there, 
   OVERLAP_M, truth), the share that take part in a loop to that session kept by the solve
   (target >= 95 %);
 - wrong loops: loops kept by the solve whose measured relative pose (loops.csv) is off the
-  truth's by more than WRONG_M or WRONG_DEG (target 0).
+  truth's by more than WRONG_M or WRONG_DEG (target 0);
+- changes, by object (targets >= 0.9): an object of changes.csv is right when its centre (moved
+  into the world by the same alignment) lies within CHANGE_M of the footprint of a changed
+  object of changes.json (a disappeared one where the object was before its change, an appeared
+  one where it is after); precision: right objects / objects found; recall: changes with at
+  least one right object / changes.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from lidar_slam.map.saved import open_map
 OVERLAP_M = 2.0
 WRONG_M = 0.5
 WRONG_DEG = 3.0
+CHANGE_M = 0.5
 
 
 def _cli(*args) -> None:
@@ -87,6 +93,7 @@ def evaluate(sim: Path, merged: Path) -> dict:
     n_linked = sum(1 for kf, o in overlapping if (kf, o) in linked)
     left_out = [json.loads(p.read_text()) for p in sorted((merged / "sessions").glob(
         "*/summary.json"))]
+    change_scores = _changes(sim, merged, T) if (merged / "changes.csv").is_file() else {}
     return {"keyframes": len(rows), "sessions_kept": len(sessions),
             "sessions_left_out": [d["run"] for d in left_out if not d["kept"]],
             "keyframe_error_mean_m": float(err.mean()),
@@ -94,7 +101,33 @@ def evaluate(sim: Path, merged: Path) -> dict:
             "keyframe_error_max_m": float(err.max()),
             "overlapping_keyframes": len(overlapping), "overlapping_linked": n_linked,
             "overlap_linked_pct": 100.0 * n_linked / max(len(overlapping), 1),
-            "loops_kept": kept, "wrong_loops": len(wrong), "wrong": wrong[:10]}
+            "loops_kept": kept, "wrong_loops": len(wrong), **change_scores,
+            "wrong": wrong[:10]}
+
+
+def _changes(sim: Path, merged: Path, T_world_merged: np.ndarray) -> dict:
+    from lidar_slam.sim.sessions import read_changes
+
+    truth = read_changes(sim / "changes.json")
+    with open(merged / "changes.csv") as fh:
+        found = [(np.array([float(r["x"]), float(r["y"]), float(r["z"])]),
+                  r["change"] == "appeared") for r in csv.DictReader(fh)]
+    right, hit = set(), 0
+    for change in truth:
+        got = False
+        for box, appeared in ((change.before, False), (change.after, True)):
+            if box is None:
+                continue
+            reach = np.hypot(box.length, box.width) / 2 + CHANGE_M
+            for j, (centre, kind) in enumerate(found):
+                c = T_world_merged[:3, :3] @ centre + T_world_merged[:3, 3]
+                if kind == appeared and np.hypot(c[0] - box.x, c[1] - box.y) < reach:
+                    got = True
+                    right.add(j)
+        hit += got
+    return {"changes_true": len(truth), "change_objects_found": len(found),
+            "change_precision": len(right) / max(len(found), 1),
+            "change_recall": hit / max(len(truth), 1)}
 
 
 def _truth(cache: dict, sim: Path, session: int, frame: int) -> np.ndarray:

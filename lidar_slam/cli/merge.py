@@ -20,6 +20,9 @@ def merge(
                                        "the merged map is in."),
     min_loops: int = typer.Option(2, "--min-loops", min=1,
                                   help="Verified loops that must agree to link two sessions."),
+    changes: bool = typer.Option(True, "--changes/--no-changes",
+                                 help="Find what appeared and disappeared between sessions "
+                                      "(MAP/changes.ply, changes.csv)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace the files in --out."),
 ) -> None:
     """Merge sessions recorded at different times into one map that `localize` and `export`
@@ -29,10 +32,12 @@ def merge(
     """
     from lidar_slam.merge.build import merge_runs
 
-    result = merge_runs(runs, out, reference, min_loops, overwrite=overwrite)
+    result = merge_runs(runs, out, reference, min_loops, overwrite=overwrite, detect=changes)
     for i, s in enumerate(result.sessions):
         loops = sum(v["kept"] for v in s["loops_with_sessions"].values())
         typer.echo(f"session {i}: {'kept' if s['kept'] else 'LEFT OUT'} ({s['why']}), "
                    f"{s['keyframes']} keyframes, {loops} loops with other sessions kept")
+    changed = ("" if result.changed_objects is None
+               else f", {result.changed_objects} changed objects")
     typer.echo(f"wrote {out}: {result.n_keyframes} keyframes, {result.loops} loops between "
-               f"sessions, {result.seconds:.1f} s")
+               f"sessions{changed}, {result.seconds:.1f} s")

@@ -11,6 +11,8 @@ the first solve put the sessions; kept by the final solve or not), and per sessi
 order given, sessions/<i>/: poses_kitti.txt (every frame of the session in the merged frame,
 rows as its run's) and summary.json (kept or left out and why, loops).
 sessions/keyframes.csv says which session and keyframe each merged keyframe came from.
+changes.ply / changes.csv: what changed between sessions (lidar_slam.merge.changes), point by
+point (session, appeared or disappeared, object) and object by object.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from lidar_slam.errors import InputError, RunFailed
 from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
 from lidar_slam.map.keyframes import DESCRIPTORS, KeyframeStore
+from lidar_slam.merge.changes import ChangeCloud, detect_changes
 from lidar_slam.merge.loops import LoopSearch, SessionLoop, find_loops, guided_loops
 from lidar_slam.merge.session import Session, open_session
 from lidar_slam.merge.solve import Anchors, JointSolution, anchors, solve
@@ -36,7 +39,7 @@ from lidar_slam.merge.solve import Anchors, JointSolution, anchors, solve
 log = logging.getLogger(__name__)
 
 MERGE_OUTPUTS = ("keyframes", "sessions", "config.yaml", "summary.json", "poses_kitti.txt",
-                 "poses_tum.txt", "loops.csv")
+                 "poses_tum.txt", "loops.csv", "changes.ply", "changes.csv")
 
 
 @dataclass
@@ -48,11 +51,12 @@ class MergeResult:
     n_keyframes: int
     loops: int
     seconds: float
+    changed_objects: int | None = None  # None: not looked for
 
 
 def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int = 2,
-               max_verify: int = 3, overwrite: bool = False, guided_radius_m: float = 3.0
-               ) -> MergeResult:
+               max_verify: int = 3, overwrite: bool = False, guided_radius_m: float = 3.0,
+               detect: bool = True) -> MergeResult:
     """Merge the run folders into out (the --out rule: refused when it holds files, unless
     overwrite); raises InputError for a folder that is not a finished run with keyframes,
     RunFailed for a reference out of range or an --out that is one of the runs."""
@@ -92,13 +96,19 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
                 anc.left_out[s.index] = "the joint solve rejected every loop linking it"
                 del anc.T_ref_session[s.index]
                 sol = solve(sessions, loops, anc, reference)
+        changes = detect_changes(sessions, sol.T_merged_kf) if detect else None
         n = _write(out, sessions, loops, search, anc, sol, reference)
+        if changes is not None:
+            _write_changes(out, changes)
         summaries = [json.loads((out / "sessions" / str(s.index) / "summary.json").read_text())
                      for s in sessions]
     finally:
         for s in sessions:
             s.close()
-    return MergeResult(summaries, n, sum(bool(k) for k in sol.kept), time.perf_counter() - t0)
+    objects = (None if changes is None
+               else len(set(changes.cluster[changes.cluster >= 0].tolist())))
+    return MergeResult(summaries, n, sum(bool(k) for k in sol.kept), time.perf_counter() - t0,
+                       objects)
 
 
 def _kept(loops: list[SessionLoop], sol: JointSolution) -> list[SessionLoop]:
@@ -160,6 +170,31 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
             summary[key] = ref_summary[key]
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     return len(poses)
+
+
+def _write_changes(out: Path, changes: ChangeCloud) -> None:
+    """changes.ply (every changed point: x, y, z in the merged frame, session, appeared 1 /
+    disappeared 0, object or -1) and changes.csv (one row per changed object)."""
+    from lidar_slam.io.ply import write_ply
+
+    write_ply(out / "changes.ply", {"x": changes.points[:, 0].astype(np.float32),
+                                    "y": changes.points[:, 1].astype(np.float32),
+                                    "z": changes.points[:, 2].astype(np.float32),
+                                    "session": changes.session.astype(np.int32),
+                                    "appeared": changes.appeared.astype(np.int32),
+                                    "object": changes.cluster.astype(np.int32)})
+    with atomic_path(out / "changes.csv") as tmp, open(tmp, "w", newline="") as fh:
+        rows = csv.writer(fh)
+        rows.writerow(["object", "change", "sessions", "points", "x", "y", "z", "size_x",
+                       "size_y", "size_z"])
+        for obj in sorted(set(changes.cluster[changes.cluster >= 0].tolist())):
+            sel = changes.cluster == obj
+            p = changes.points[sel]
+            lo, hi = p.min(axis=0), p.max(axis=0)
+            rows.writerow([obj, "appeared" if changes.appeared[sel][0] else "disappeared",
+                           " ".join(map(str, sorted(set(changes.session[sel].tolist())))),
+                           int(sel.sum()), *(f"{v:.3f}" for v in (lo + hi) / 2),
+                           *(f"{v:.3f}" for v in hi - lo)])
 
 
 def _write_loops(path: Path, loops: list[SessionLoop], sol: JointSolution) -> None:
