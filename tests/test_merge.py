@@ -84,6 +84,20 @@ def test_changed_objects_are_in_the_world_of_their_session():
         assert hit_box == there, (session, hit)
 
 
+def _ply_columns(path: Path) -> dict[str, np.ndarray]:
+    """The vertex columns of a binary little-endian PLY (float / int properties)."""
+    types = {"float": "<f4", "int": "<i4", "uint": "<u4"}
+    with open(path, "rb") as fh:
+        header = []
+        while not header or header[-1] != "end_header":
+            header.append(fh.readline().decode("ascii").strip())
+        n = int(next(h.split()[2] for h in header if h.startswith("element vertex")))
+        fields = [(h.split()[2], types[h.split()[1]]) for h in header
+                  if h.startswith("property")]
+        rows = np.fromfile(fh, dtype=np.dtype(fields), count=n)
+    return {name: rows[name] for name, _ in fields}
+
+
 @pytest.fixture(scope="module")
 def merged(tmp_path_factory):
     """Two 12 s hand-held walks with an IMU through one indoor world, starting close together,
@@ -122,6 +136,22 @@ def test_merged_keyframes_land_on_the_truth(merged):
     with open(root / "map" / "loops.csv") as fh:
         loops = [r for r in csv.DictReader(fh) if r["kept"] == "1"]
     assert len(loops) >= 5
+
+
+def test_objects_changed_between_the_walks_are_found(merged):
+    """4 objects moved, added or removed between the two walks: found by object (the bench's
+    rule, tools/merge_bench.py), each point with its session and kind in changes.ply."""
+    from tools.merge_bench import evaluate
+
+    root, _, _ = merged
+    scores = evaluate(root / "sim", root / "map")
+    assert scores["change_precision"] >= 0.75 and scores["change_recall"] >= 0.5, scores
+    assert scores["wrong_loops"] == 0 and scores["overlap_linked_pct"] >= 90.0, scores
+    cols = _ply_columns(root / "map" / "changes.ply")
+    assert set(cols) >= {"x", "y", "z", "session", "appeared", "object"}
+    assert set(np.unique(cols["session"]).tolist()) <= {0, 1}
+    appeared = cols["appeared"] == 1
+    assert (cols["session"][appeared] == 1).all()  # appeared: seen by the later session only
 
 
 def test_every_frame_of_every_session_is_written_in_the_merged_frame(merged):
