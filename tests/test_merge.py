@@ -198,6 +198,30 @@ def test_a_session_of_another_place_is_left_out(merged, tmp_path):
     assert (tmp_path / "map" / "sessions" / "2" / "poses_kitti.txt").is_file()
 
 
+def test_run_extend_adds_a_session_to_a_run_and_to_a_merged_map(merged, tmp_path):
+    """`run DATA --extend MAP --out NEW`: DATA run into NEW/run and merged with MAP's
+    sessions, in MAP's frame; NEW extended again keeps all three."""
+    root, runs, _ = merged
+    proc = lidar_slam("run", root / "sim" / "session_1", "--extend", runs[0], "--out",
+                      tmp_path / "one")
+    assert proc.returncode == 0, proc.stderr
+    assert "2 of 2 sessions kept" in proc.stdout, proc.stdout
+    ref = read_kitti_poses(tmp_path / "one" / "sessions" / "0" / "poses_kitti.txt")
+    assert np.allclose(ref[0], np.eye(4), atol=0.05)
+    proc = lidar_slam("run", root / "sim" / "session_0", "--start", "40", "--n-scans", "50",
+                      "--extend", tmp_path / "one", "--out", tmp_path / "two")
+    assert proc.returncode == 0, proc.stderr
+    assert "3 of 3 sessions kept" in proc.stdout, proc.stdout
+    summary = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert summary["merged_from"][:2] == [str(runs[0].resolve()),
+                                          str((tmp_path / "one" / "run").resolve())]
+    assert len(read_kitti_poses(tmp_path / "two" / "sessions" / "2" / "poses_kitti.txt")) == 50
+    proc = lidar_slam("run", root / "sim" / "session_1", "--extend", root / "sim", "--out",
+                      tmp_path / "three")
+    assert_one_line_error(proc, "not a saved map")
+    assert not (tmp_path / "three").exists()
+
+
 def test_bad_input_is_one_line(merged, tmp_path):
     root, runs, _ = merged
     proc = lidar_slam("merge", runs[0], root / "sim" / "session_0", "--out", tmp_path / "m")

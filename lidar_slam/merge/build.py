@@ -156,7 +156,8 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
         ref_summary = json.loads((ref.run_dir / "summary.json").read_text())
     except (OSError, ValueError):
         ref_summary = {}
-    summary = {"merged_from": [str(s.run_dir) for s in sessions], "reference": reference,
+    summary = {"merged_from": [str(s.run_dir.resolve()) for s in sessions],
+               "reference": reference,
                "keyframes": len(poses), "sessions_kept": sorted(sol.T_merged_kf),
                "loops_between_sessions": {"queries": search.queries,
                                           "candidates": search.candidates,
@@ -234,3 +235,30 @@ def _write_session(folder: Path, s: Session, loops: list[SessionLoop], anc: Anch
                                            @ np.linalg.inv(s.map.T_map_kf[0]), 9).tolist()
     write_text_atomic(folder / "summary.json", json.dumps(doc, indent=1) + "\n")
 
+
+
+def sessions_of(map_dir: Path) -> tuple[list[Path], int]:
+    """The run folders a saved map is made of and its reference: a merged map's (its
+    summary.json `merged_from`, each still there), else the run itself (reference 0). What
+    `run --extend MAP` merges the new run with."""
+    try:
+        summary = json.loads((map_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        summary = {}
+    runs = summary.get("merged_from") if isinstance(summary, dict) else None
+    if not runs:
+        if not (map_dir / "keyframes" / "manifest.json").is_file():
+            raise InputError(map_dir, "not a saved map (no keyframes/manifest.json)")
+        return [map_dir], 0
+    for run in runs:
+        if not Path(run).is_dir():
+            raise InputError(map_dir, f"merged from {run}, which is no longer there: "
+                             "--extend merges the map's runs again")
+    return [Path(r) for r in runs], int(summary.get("reference", 0))
+
+
+def extend_map(map_dir: Path, new_run: Path, out: Path) -> MergeResult:
+    """`run --extend`: the new run (already written) merged with the map's sessions into out,
+    in the map's reference frame (the new run is the last session)."""
+    runs, reference = sessions_of(map_dir)
+    return merge_runs([*runs, new_run], out, reference, overwrite=True)
