@@ -150,7 +150,8 @@ def simulate(
                   (sensor or Sensor.os1_64).value, seed, overwrite, rates, timing)
         return
     if world is not None or duration_s is not None or sessions is not None:
-        raise fail("--world, --duration-s and --sessions go with --motion")
+        raise fail("--world, --duration-s and --sessions go with --motion handheld (or legged, "
+                   "drone, car)")
     if not poses:
         raise fail("simulate needs POSES (KITTI pose files) or --motion handheld")
     sensor = sensor or Sensor.hdl64
