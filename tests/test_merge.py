@@ -152,6 +152,9 @@ def test_objects_changed_between_the_walks_are_found(merged):
     assert set(np.unique(cols["session"]).tolist()) <= {0, 1}
     appeared = cols["appeared"] == 1
     assert (cols["session"][appeared] == 1).all()  # appeared: seen by the later session only
+    later = json.loads((root / "map" / "sessions" / "1" / "summary.json").read_text())
+    assert later["changes"]["appeared_points"] == int(appeared.sum())
+    assert later["changes"]["appeared_objects"] >= 1
 
 
 def test_every_frame_of_every_session_is_written_in_the_merged_frame(merged):

@@ -32,7 +32,13 @@ from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
 from lidar_slam.map.keyframes import DESCRIPTORS, KeyframeStore
 from lidar_slam.merge.changes import ChangeCloud, detect_changes
-from lidar_slam.merge.loops import LoopSearch, SessionLoop, find_loops, guided_loops
+from lidar_slam.merge.loops import (
+    LoopSearch,
+    SessionGrids,
+    SessionLoop,
+    find_loops,
+    guided_loops,
+)
 from lidar_slam.merge.session import Session, open_session
 from lidar_slam.merge.solve import Anchors, JointSolution, anchors, solve
 
@@ -100,6 +106,7 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
         n = _write(out, sessions, loops, search, anc, sol, reference)
         if changes is not None:
             _write_changes(out, changes)
+            _add_changes_to_sessions(out, sessions, changes)
         summaries = [json.loads((out / "sessions" / str(s.index) / "summary.json").read_text())
                      for s in sessions]
     finally:
@@ -126,8 +133,7 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
             if s.index not in sol.T_merged_kf:
                 continue
             T = sol.T_merged_kf[s.index]
-            ids, g = s.map.descriptor_grids()
-            grids.append(g)
+            grids.append(SessionGrids(s, ref.map.cfg).grids)  # the merged map's one shape
             for k in range(len(s)):
                 kf = s.map.keyframe(k)
                 store.add(int(s.map.frame_index[k]), T[k], kf.points, kf.intensity,
@@ -196,6 +202,23 @@ def _write_changes(out: Path, changes: ChangeCloud) -> None:
                            " ".join(map(str, sorted(set(changes.session[sel].tolist())))),
                            int(sel.sum()), *(f"{v:.3f}" for v in (lo + hi) / 2),
                            *(f"{v:.3f}" for v in hi - lo)])
+
+
+def _add_changes_to_sessions(out: Path, sessions: list[Session], changes: ChangeCloud) -> None:
+    """Each session's summary.json gets its changed points and objects (an object counts for
+    the sessions whose points it holds)."""
+    for s in sessions:
+        path = out / "sessions" / str(s.index) / "summary.json"
+        doc = json.loads(path.read_text())
+        mine = changes.session == s.index
+        counts = {}
+        for kind, sel in (("appeared", mine & changes.appeared),
+                          ("disappeared", mine & ~changes.appeared)):
+            objects = set(changes.cluster[sel & (changes.cluster >= 0)].tolist())
+            counts[f"{kind}_points"] = int(sel.sum())
+            counts[f"{kind}_objects"] = len(objects)
+        doc["changes"] = counts
+        write_text_atomic(path, json.dumps(doc, indent=1) + "\n")
 
 
 def _write_loops(path: Path, loops: list[SessionLoop], sol: JointSolution) -> None:

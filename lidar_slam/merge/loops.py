@@ -53,7 +53,7 @@ def descriptor_shape(cfg: SlamConfig) -> tuple:
     return sc.rings, sc.sectors, sc.max_radius_m, sc.level_to_ground
 
 
-class _Grids:
+class SessionGrids:
     """One session's descriptors: ids of keyframes with points, grids, ring keys; the run's
     stored grids when they were made as cfg makes them, else computed again with cfg's."""
 
@@ -70,7 +70,7 @@ class _Grids:
         self.ring_keys = self.grids.mean(axis=2)
 
 
-def candidates(query_grid: np.ndarray, target: _Grids, cfg: SlamConfig
+def candidates(query_grid: np.ndarray, target: SessionGrids, cfg: SlamConfig
                ) -> list[tuple[float, int, float]]:
     """(distance, match keyframe id, yaw guess rad) below the threshold, best first: the
     nearest ring keys, each compared at every column shift."""
@@ -93,7 +93,7 @@ def find_loops(sessions: list[Session], cfg: SlamConfig, max_verify: int = 3
     """Verified loops between every pair of sessions, both ways (each keyframe of b queried
     among a's and each of a's among b's); per query keyframe the best max_verify candidates
     are verified until one is accepted. Verification sides are built once per keyframe."""
-    grids = {s.index: _Grids(s, cfg) for s in sessions}
+    grids = {s.index: SessionGrids(s, cfg) for s in sessions}
     vcfg = cfg.loop.verify
     radius = vcfg.submap_radius
     stats = LoopSearch()
@@ -178,3 +178,4 @@ def guided_loops(sessions: list[Session], T_ref_kf: dict[int, np.ndarray],
                     linked |= {(sq.index, k, so.index), (so.index, m, sq.index)}
     log.info("guided search: %d of %d verified accepted", len(new), verified)
     return new, verified
+
