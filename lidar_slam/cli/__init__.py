@@ -2,7 +2,7 @@
 the library and printing. `app` is the entry point (pyproject: lidar_slam.cli:app).
 
 common: the app, the one-line error handling (reports_errors) and the summary table; run,
-batch, optimize, eval, simulate, localize, export: the commands.
+batch, optimize, eval, simulate, localize, export, merge: the commands.
 """
 
 import importlib
@@ -16,7 +16,7 @@ tune_process()
 from lidar_slam.cli.common import app, reports_errors  # noqa: E402
 
 # Importing a command's module registers it with app; --help lists them in this order.
-COMMANDS = ("run", "batch", "optimize", "eval", "simulate", "localize", "export")
+COMMANDS = ("run", "batch", "optimize", "eval", "simulate", "localize", "export", "merge")
 for _name in COMMANDS:
     importlib.import_module(f"lidar_slam.cli.{_name}")
 

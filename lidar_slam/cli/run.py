@@ -36,6 +36,10 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a previous run in --out."),
     resume: bool = typer.Option(False, "--resume",
                                 help="Continue the killed run in --out from its checkpoint."),
+    extend: Optional[Path] = typer.Option(None, "--extend", help="A saved map (a run, or a "
+                                          "`merge` whose runs are still there): DATA is run "
+                                          "into OUT/run, then merged with the map's sessions "
+                                          "into OUT, in the map's frame (as `merge`)."),
 ) -> None:
     """Run SLAM on DATA and write poses, map, config and summary into --out.
 
@@ -44,12 +48,27 @@ def run(
     """
     from lidar_slam.run.runner import run_sequence
 
-    outcome = run_sequence(data, out, config=config, start=start, n_scans=n_scans, topic=topic,
+    run_dir = out
+    if extend is not None:
+        from lidar_slam.merge.build import MERGE_OUTPUTS, sessions_of
+        from lidar_slam.run.outdir import prepare_out_dir
+
+        sessions_of(extend)  # a bad MAP is refused before the run, not after
+        prepare_out_dir(out, (*MERGE_OUTPUTS, "run"), overwrite, resume)
+        run_dir = out / "run"
+    outcome = run_sequence(data, run_dir, config=config, start=start, n_scans=n_scans, topic=topic,
                            imu_topic=imu_topic, gnss_topic=gnss_topic, meta=meta,
                            overrides=run_overrides(no_loops, no_deskew, no_imu, no_gnss),
                            viz=viz, rrd=rrd,
                            overwrite=overwrite, resume=resume)
     typer.echo(summary_table(outcome.summary))
+    if extend is not None and outcome.failure is None:
+        from lidar_slam.merge.build import extend_map
+
+        result = extend_map(extend, run_dir, out)
+        kept = sum(s["kept"] for s in result.sessions)
+        typer.echo(f"merged with {extend}: {kept} of {len(result.sessions)} sessions kept, "
+                   f"{result.loops} loops between them")
     typer.echo(f"wrote {out}")
     if outcome.failure is not None:
         raise outcome.failure

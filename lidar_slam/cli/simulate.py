@@ -29,6 +29,7 @@ class Motion(str, Enum):
     handheld = "handheld"
     legged = "legged"
     drone = "drone"
+    car = "car"
 
 
 class WorldKind(str, Enum):
@@ -105,6 +106,13 @@ def simulate(
     duration_s: Optional[float] = typer.Option(None, "--duration-s", min=0.5,
                                                help="With --motion: seconds of walk (default "
                                                "60; one scan per sweep from t = 0)."),
+    sessions: Optional[int] = typer.Option(
+        None, "--sessions", min=1, help="With --motion handheld or car: N recordings of one "
+        "world into OUT/session_<i>, each from its own start in its own frame (odd ones the "
+        "other way round), truth_world.txt beside each, objects changed between them "
+        "(OUT/changes.json). car: --world outdoor only."),
+    changes: int = typer.Option(10, "--changes", min=0, help="With --sessions: objects moved, "
+                                "added or removed between sessions."),
 ) -> None:
     """Ray-cast a lidar along a real trajectory through a procedural street world, or along a
     handheld walk, a legged robot's trot or a drone's flight (--motion) through a built world.
@@ -127,12 +135,23 @@ def simulate(
         if given:
             raise fail(f"--motion {motion.value} walks its own path in its own world: "
                        f"{', '.join(given)} not taken (--duration-s sets the length)")
-        default = WorldKind.outdoor if motion is Motion.drone else WorldKind.indoor
+        default = WorldKind.outdoor if motion in (Motion.drone, Motion.car) else WorldKind.indoor
+        if sessions is not None:
+            from lidar_slam.sim.sessions import simulate_sessions_job
+
+            typer.echo(simulate_sessions_job(out, sessions, motion.value,
+                                             (world or default).value, duration_s or 60.0,
+                                             (sensor or Sensor.os1_64).value, seed, changes,
+                                             overwrite, rates))
+            return
+        if motion is Motion.car:
+            raise fail("--motion car goes with --sessions (one drive: give POSES)")
         _handheld(out, motion, world or default, duration_s or 60.0,
                   (sensor or Sensor.os1_64).value, seed, overwrite, rates, timing)
         return
-    if world is not None or duration_s is not None:
-        raise fail("--world and --duration-s go with --motion handheld")
+    if world is not None or duration_s is not None or sessions is not None:
+        raise fail("--world, --duration-s and --sessions go with --motion handheld (or legged, "
+                   "drone, car)")
     if not poses:
         raise fail("simulate needs POSES (KITTI pose files) or --motion handheld")
     sensor = sensor or Sensor.hdl64

@@ -329,6 +329,9 @@ class Site:
     path: LoopPath
     ground: Callable[[np.ndarray], np.ndarray]
     ceiling_m: float | None = None  # indoors: the ceiling's height above the floor
+    # The loop's polygon (K, 2) (m, in order) before rounding: another walk of the same loop
+    # (simulate --sessions: another start, the other way round) is LoopPath.polygon of it.
+    corners: np.ndarray | None = None
 
 
 def _flat(xy: np.ndarray) -> np.ndarray:
@@ -350,7 +353,8 @@ def build_site(kind: str, seed: int, sensor: LidarModel, corner_m: float | None 
                                   bool(rng.random() < 0.5),
                                   float(rng.uniform(0.0, 2 * (lay.length_m + lay.width_m))))
         world = build_indoor_world(lay, path.samples(), seed)
-        return Site(kind, world, path, _flat, lay.ceiling_m)
+        return Site(kind, world, path, _flat, lay.ceiling_m,
+                    _rectangle(lay.length_m, lay.width_m))
     if kind in ("office", "warehouse"):
         if kind == "office":
             lay = floors.OfficeLayout.draw(rng)
@@ -363,7 +367,7 @@ def build_site(kind: str, seed: int, sensor: LidarModel, corner_m: float | None 
                                 float(rng.uniform(0.0, lap)))
         build = floors.build_office_world if kind == "office" else floors.build_warehouse_world
         world = build(lay, path.samples(), seed)
-        return Site(kind, world, path, _flat, lay.ceiling_m)
+        return Site(kind, world, path, _flat, lay.ceiling_m, np.asarray(corners, float))
     if kind != "outdoor":
         raise ValueError(f"unknown world {kind!r}; choose one of {WORLDS}")
     length, width = float(rng.uniform(20.0, 28.0)), float(rng.uniform(11.0, 15.0))
@@ -377,7 +381,11 @@ def build_site(kind: str, seed: int, sensor: LidarModel, corner_m: float | None 
     slope = rng.uniform(-0.03, 0.03, 2)
     poses[:, :3, 3] = np.c_[xy, sensor.mount_height_m + xy @ slope]
     world = build_world(poses, sensor, seed, WorldParams(extend_m=30.0))
-    return Site(kind, world, path, world.terrain.height)
+    return Site(kind, world, path, world.terrain.height, None, _rectangle(length, width))
+
+
+def _rectangle(length_m: float, width_m: float) -> np.ndarray:
+    return np.array([[0.0, 0.0], [length_m, 0.0], [length_m, width_m], [0.0, width_m]])
 
 
 def write_bursts(path: Path, bursts: list[Burst]) -> None:

@@ -1,0 +1,157 @@
+"""What changed between sessions: points one session saw where another saw through.
+
+For every pair of kept sessions, each keyframe cloud of one (in the merged frame, voxelised) is
+tested against the keyframes of the other within reach: a keyframe "sees through" a point when,
+in the direction of the point, its own cloud's nearest return (the minimum range in that
+direction's bin of its range image) lies more than margin_m beyond the point; it "sees" the
+point when a return lies within margin_m of it. A point that the other session saw through at
+least min_votes times and through more than twice as often as it saw it is changed: appeared
+when the point's session is the later one (in the order given), disappeared when it is the
+earlier. Changed points are clustered (open3d DBSCAN) into objects.
+
+The keyframe clouds are voxelised (keyframes.cloud_voxel_m), so range-image bins are wide
+(bin_deg) and a bin without a return says nothing (no vote).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidar_slam.frontend.downsample import voxel_downsample
+from lidar_slam.geometry import inverse, transform_points
+from lidar_slam.merge.session import Session
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ChangeOptions:
+    """Bin size of the range images (deg), how far beyond a point a return must lie to see
+    through it (m), votes needed, reach of a keyframe (m), the points' voxel (m), and the
+    clustering radius (m) and minimum points of a changed object."""
+
+    bin_deg: float = 3.0
+    margin_m: float = 0.6
+    min_votes: int = 3
+    reach_m: float = 15.0
+    voxel_m: float = 0.25
+    cluster_m: float = 0.8
+    cluster_min_points: int = 3
+    object_min_points: int = 20  # a changed object: a cluster at least this big
+    max_normal_z: float = 0.8  # floors, ceilings (|normal z| above this) never count as changed
+
+
+@dataclass(frozen=True)
+class ChangeCloud:
+    """Changed points (N, 3) in the merged frame, the session each came from, appeared (True)
+    or disappeared, and its cluster id (-1: noise)."""
+
+    points: np.ndarray
+    session: np.ndarray
+    appeared: np.ndarray
+    cluster: np.ndarray
+
+
+class _RangeImage:
+    """A keyframe's minimum range per (azimuth, elevation) bin, in its own frame."""
+
+    def __init__(self, points_kf: np.ndarray, bin_deg: float):
+        self.bin = np.radians(bin_deg)
+        self.n_az = int(np.ceil(2 * np.pi / self.bin))
+        self.n_el = int(np.ceil(np.pi / self.bin))
+        self.ranges = np.full(self.n_az * self.n_el, np.inf)
+        idx, r = self._index(points_kf)
+        np.minimum.at(self.ranges, idx, r)
+
+    def _index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = np.linalg.norm(points, axis=1)
+        az = np.arctan2(points[:, 1], points[:, 0]) + np.pi
+        el = np.arccos(np.clip(points[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0))
+        ia = np.minimum((az / self.bin).astype(np.int64), self.n_az - 1)
+        ie = np.minimum((el / self.bin).astype(np.int64), self.n_el - 1)
+        return ie * self.n_az + ia, r
+
+    def votes(self, points: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(saw through, saw) per point (N, 3) in this keyframe's frame."""
+        idx, r = self._index(points)
+        nearest = self.ranges[idx]
+        return np.isfinite(nearest) & (nearest > r + margin_m), np.abs(nearest - r) <= margin_m
+
+
+def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions) -> np.ndarray:
+    """The session's keyframe clouds in the merged frame, voxelised, without horizontal
+    surfaces (a floor or ceiling seen at a grazing angle fills a range-image bin with returns
+    beyond itself: a change that is not)."""
+    from lidar_slam.o3d import o3d
+
+    parts = [transform_points(T_merged_kf[k], s.map.keyframe(k).points.astype(np.float64))
+             for k in range(len(s)) if s.map.counts[k]]
+    points = voxel_downsample(np.concatenate(parts), opts.voxel_m)[0]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=1.0, max_nn=30))
+    return points[np.abs(np.asarray(cloud.normals)[:, 2]) <= opts.max_normal_z]
+
+
+def _through(points: np.ndarray, other: Session, T_merged_kf: np.ndarray,
+             opts: ChangeOptions) -> tuple[np.ndarray, np.ndarray]:
+    """How often the other session's keyframes saw through / saw each point (merged frame)."""
+    through = np.zeros(len(points), dtype=np.int64)
+    seen = np.zeros(len(points), dtype=np.int64)
+    for k in range(len(other)):
+        if not other.map.counts[k]:
+            continue
+        origin = T_merged_kf[k][:3, 3]
+        near = np.flatnonzero(np.linalg.norm(points - origin, axis=1) < opts.reach_m)
+        if len(near) == 0:
+            continue
+        image = _RangeImage(other.map.keyframe(k).points.astype(np.float64), opts.bin_deg)
+        t, s = image.votes(transform_points(inverse(T_merged_kf[k]), points[near]),
+                           opts.margin_m)
+        through[near] += t
+        seen[near] += s
+    return through, seen
+
+
+def detect_changes(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
+                   opts: ChangeOptions | None = None) -> ChangeCloud:
+    """Appeared and disappeared points between every pair of kept sessions (module doc)."""
+    from lidar_slam.o3d import o3d
+
+    opts = opts or ChangeOptions()
+    kept = [s for s in sessions if s.index in T_merged_kf]
+    clouds = {s.index: _session_points(s, T_merged_kf[s.index], opts) for s in kept}
+    pts, sess, app = [], [], []
+    for s in kept:
+        changed = np.zeros(len(clouds[s.index]), dtype=bool)
+        later = np.zeros(len(clouds[s.index]), dtype=bool)
+        for o in kept:
+            if o.index == s.index:
+                continue
+            through, seen = _through(clouds[s.index], o, T_merged_kf[o.index], opts)
+            hit = (through >= opts.min_votes) & (through > 2 * seen)
+            changed |= hit
+            later |= hit & (s.index > o.index)
+        pts.append(clouds[s.index][changed])
+        sess.append(np.full(int(changed.sum()), s.index, dtype=np.int32))
+        app.append(later[changed])
+    points = np.concatenate(pts) if pts else np.zeros((0, 3))
+    session = np.concatenate(sess) if sess else np.zeros(0, dtype=np.int32)
+    appeared = np.concatenate(app) if app else np.zeros(0, dtype=bool)
+    cluster = np.full(len(points), -1, dtype=np.int32)
+    for group in ((appeared, ), (~appeared, )):
+        sel = np.flatnonzero(group[0])
+        if len(sel) == 0:
+            continue
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[sel]))
+        labels = np.asarray(cloud.cluster_dbscan(opts.cluster_m, opts.cluster_min_points))
+        sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
+        big = np.flatnonzero(sizes >= opts.object_min_points)
+        ids = np.full(len(sizes), -1)
+        ids[big] = cluster.max() + 1 + np.arange(len(big))
+        cluster[sel] = np.where(labels >= 0, ids[np.maximum(labels, 0)], -1)
+    log.info("changes: %d points appeared, %d disappeared, %d objects", int(appeared.sum()),
+             int((~appeared).sum()), len(set(cluster[cluster >= 0].tolist())))
+    return ChangeCloud(points, session, appeared, cluster)
