@@ -16,8 +16,9 @@ broken code. Nothing in the package reads a switch for this: a break is a change
 
 The documented breaks (BREAKS below) are listed in docs/design.md, "Breaks the tests must
 catch", each beside the promise it breaks and the test that catches it. A break is caught when
-pytest fails (a test failing or erroring; a patched file that no longer compiles is reported as
-a stale break, not as caught). Exit status: 1 when a documented break survived.
+pytest fails (a test failing or erroring). A timeout is not a catch, and a break whose text is
+no longer in its file (or whose patched file does not compile) is reported as stale: the list
+must follow the code. Exit status: 1 when a documented break was not caught.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import os
 import random
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -63,13 +65,15 @@ BREAKS = [
           ("tests/test_imu_frontend.py::test_imu_deskew_and_prediction_track_a_fast_turning_walk"
            "_at_least_as_well_as_constant_velocity",)),
     # 2, 3: the final inertial solve
-    Break("gravity-alignment-off", "2", "lidar_slam/backend/inertial.py",
-          "    return gravity_rotation(-g)\n", "    return np.eye(3)\n",
+    Break("gravity-alignment-off", "2", "lidar_slam/pipeline.py",
+          "        T_gravity_map[:3, :3] = gravity_rotation(T_S_map[:3, :3].T @ [0.0, 0.0, 1.0])",
+          "        pass",
           ("tests/test_backend_inertial.py::test_a_run_without_loops_with_imu_and_gnss_is_gravity"
            "_aligned_and_geo_referenced",)),
     Break("imu-factors-off", "3", "lidar_slam/backend/inertial_graph.py",
-          "    for link in links:\n        graph.add(gtsam.CombinedImuFactor(",
-          "    for link in links[:0]:\n        graph.add(gtsam.CombinedImuFactor(",
+          "    graph = gtsam.NonlinearFactorGraph()\n    values = gtsam.Values()\n",
+          "    graph = gtsam.NonlinearFactorGraph()\n    values = gtsam.Values()\n"
+          "    links = []\n",
           ("tests/test_backend_inertial.py::test_imu_factors_take_out_part_of_a_clean_runs_drift",)),
     Break("gnss-gate-open", "gnss", "lidar_slam/backend/gnss.py",
           "CHI2_3_GATE = 16.266", "CHI2_3_GATE = 1e12",
@@ -202,14 +206,22 @@ def run_tests(root: Path, tests: list[str], timeout_s: float, extra: list[str] =
     cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
            "-o", "addopts=", *extra, *tests]
     t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        proc = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True,
-                              timeout=timeout_s, start_new_session=True)
+        stdout, stderr = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # pytest and whatever it started
+        proc.communicate()
         return "timeout", time.perf_counter() - t0, f"over {timeout_s:.0f} s"
+    finally:
+        try:  # a loop worker or Ray daemon left behind by a broken run
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
     dt = time.perf_counter() - t0
-    lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
-    last = lines[-1] if lines else proc.stderr.strip()[-200:]
+    lines = [ln for ln in stdout.splitlines() if ln.strip()]
+    last = lines[-1] if lines else stderr.strip()[-200:]
     if proc.returncode == 5:
         return "none", dt, last  # no test collected: the break's test names are stale
     return ("passed" if proc.returncode == 0 else "failed"), dt, last
@@ -243,7 +255,7 @@ def documented(names: list[str], baseline: bool, timeout_s: float) -> int:
                 if baseline:
                     result = {"passed": "passes", "failed": "FAILS"}.get(state, state.upper())
                 else:
-                    result = {"failed": "caught", "passed": "SURVIVED", "timeout": "caught?",
+                    result = {"failed": "caught", "passed": "SURVIVED", "timeout": "TIMEOUT",
                               "none": "STALE"}[state]
         if result not in ("caught", "passes"):
             survived.append(b.name)
