@@ -126,7 +126,7 @@ RKO_LIO_MISSING = (importlib.util.find_spec("rko_lio") is None
                    or importlib.util.find_spec("plyfile") is None)
 
 
-def _needs_rko_lio(test):
+def needs_rko_lio(test):
     """Skip where rko_lio is not installed (the rko or bench extra), unless
     LIDAR_SLAM_REQUIRE_RKO_LIO=1 (set by .ci/run, whose install has the rko extra): then the
     test fails on it."""
@@ -145,7 +145,6 @@ def _needs_rko_lio(test):
     return wrapped
 
 
-needs_rko_lio = _needs_rko_lio
 # A tilted, offset IMU: the extrinsic must reach rko_lio as it is, not as identity.
 T_LIDAR_IMU = "0.1,-0.05,0.2,3,-2,90"
 
