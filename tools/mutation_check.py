@@ -369,7 +369,7 @@ def random_mode(n: int, seed: int, timeout_s: float) -> int:
     sample = rng.sample(pool, min(n, len(pool)))
     print(f"{len(pool)} mutants in lidar_slam/{{{','.join(PACKAGES)}}} (modules some test "
           f"imports); {len(sample)} drawn with seed {seed}")
-    survived, counted = [], 0
+    survived, undecided, counted = [], [], 0
     for i, (m, f) in enumerate(sample, 1):
         tests = tests_importing(f)
         with tempfile.TemporaryDirectory(prefix="mutation-") as tmp:
@@ -385,17 +385,23 @@ def random_mode(n: int, seed: int, timeout_s: float) -> int:
                 print(f"[{i}] skipped (does not compile): {m.describe()}")
                 continue
             state, dt, last = run_tests(root, tests, timeout_s, ["-m", "not slow"])
-        counted += 1
-        verdict = {"failed": "killed", "passed": "SURVIVED", "timeout": "killed (timeout)",
+        verdict = {"failed": "killed", "passed": "SURVIVED", "timeout": "undecided",
                    "none": "no tests"}[state]
-        if state == "passed":
-            survived.append(m)
-        print(f"[{i}] {verdict:16s} {dt:5.0f} s  {m.describe()}  ({len(tests)} test files)",
+        if state == "timeout":
+            undecided.append(m)
+        elif state in ("passed", "failed"):
+            counted += 1
+            if state == "passed":
+                survived.append(m)
+        print(f"[{i}] {verdict:10s} {dt:5.0f} s  {m.describe()}  ({len(tests)} test files)",
               flush=True)
     rate = len(survived) / counted if counted else 0.0
-    print(f"\nsurvived {len(survived)} of {counted} ({100 * rate:.0f} %):")
+    print(f"\nsurvived {len(survived)} of {counted} decided ({100 * rate:.0f} %); "
+          f"{len(undecided)} undecided (their tests ran over {timeout_s:.0f} s):")
     for m in survived:
-        print("  " + m.describe())
+        print("  survived   " + m.describe())
+    for m in undecided:
+        print("  undecided  " + m.describe())
     return 0
 
 
