@@ -106,9 +106,9 @@ def test_covariances_csv_has_one_row_per_keyframe_with_21_values(tmp_path):
 
 # Mean NEES of each run below, measured (one thread: a run is the same bytes every time), and
 # the band a test holds it to: a factor NEES_BAND either way. Consecutive keyframes' errors are
-# one drift, not independent draws, so the mean of K NEES values does not settle at 3 +- a few
-# percent as K independent chi-square(3) draws would; what a test can hold is that the
-# covariances stay as (in)consistent as measured: 2.5x overconfidence (covariances 2.5x too
+# one drift, not independent draws, so the mean of K NEES values need not settle near 3 as K
+# independent chi-square(3) draws would (the sample run with loops: 14.7); what a test holds is
+# that the covariances stay as (in)consistent as measured: 2.5x overconfidence (covariances 2.5x too
 # small, NEES 2.5x up) or 2.5x underconfidence fails, and so does a mean outside 1-9 (a factor
 # 3 from consistent) where the run was inside it.
 NEES_BAND = 2.0
