@@ -105,13 +105,15 @@ def test_the_imu_in_the_final_solve_recovers_roll_and_pitch_of_a_tilted_start(dr
     assert np.allclose(out.kf_poses[0], drive.T_world_kf[0], atol=1e-6)  # the first stays
 
 
-def test_imu_factors_do_not_make_a_clean_run_worse(drive):
+def test_imu_factors_take_out_part_of_a_clean_runs_drift(drive):
     out = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(), drive.imu,
                        None)
     truth = inverse(drive.T_enu_world) @ drive.truth
     before = metrics.ate(drive.frame_poses(drive.T_world_kf), truth).rmse_m
     after = metrics.ate(drive.frame_poses(out.kf_poses), truth).rmse_m
-    assert after <= before + 0.01, (before, after)
+    # Measured: ATE 0.0706 m before, 0.0417 m after (the IMU takes out 41 % of the drift);
+    # bound 1.3x after, and a gain of at least 0.02 m (factors that did nothing: none).
+    assert after < 0.054 and after < before - 0.02, (before, after)
     cov = out.covariances[len(drive.kf_frames) // 2]
     assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
 
@@ -173,19 +175,28 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
     from lidar_slam.io.inertial_input import load_inertial
     from lidar_slam.io.sources import open_source
     from lidar_slam.run.outputs import write_run
-    from lidar_slam.sim import SENSORS, simulate_sequence
+    from lidar_slam.sim import SENSORS
     from lidar_slam.sim.inertial import GnssOptions
+    from lidar_slam.sim.sequence import sequence_world, write_sequence
+    from lidar_slam.sim.world import WorldParams, place_on_terrain
 
     t = np.arange(90) / 10.0
     poses = np.tile(np.eye(4), (len(t), 1, 1))
     poses[:, :3, 3] = np.c_[8.0 * t, 4.0 * np.sin(0.3 * t), 1.8 + 0.05 * t]
     yaw = np.arctan2(1.2 * np.cos(0.3 * t), 8.0)
-    poses[:, :3, :3] = Rotation.from_euler("ZYX", np.c_[yaw, -0.03 + 0 * t, 0.02 + 0 * t]
-                                           ).as_matrix()
+    poses[:, :3, :3] = Rotation.from_euler("z", yaw[:, None]).as_matrix()
+    # The car follows the ground (place_on_terrain); its lidar is mounted tilted 6.9 deg (roll
+    # 4.8, pitch -5): the run's world, the first scan's frame, is that far from level, so a run
+    # that did not align to gravity would be off by as much.
+    sensor = dataclasses.replace(SENSORS["vlp16"], n_azimuth=360)
+    world = sequence_world(poses, 0, len(t), sensor, 0, WorldParams())
+    poses = place_on_terrain(poses, world.terrain, sensor.mount_height_m)
+    poses[:, :3, :3] = poses[:, :3, :3] @ Rotation.from_euler(
+        "xy", [4.8, -5.0], degrees=True).as_matrix()
     data = tmp_path / "seq"
-    simulate_sequence(poses, t, data, dataclasses.replace(SENSORS["vlp16"], n_azimuth=360),
-                      seed=0, n_scans=80, imu=ImuOptions(),
-                      gnss=GnssOptions(jump_fraction=0.0, dropout=0.0))
+    write_sequence(data, world, sensor, SmoothTrajectory(t, poses), t[:80], poses[:80], 0,
+                   np.eye(4), 0.0, imu=ImuOptions(), gnss=GnssOptions(jump_fraction=0.0,
+                                                                       dropout=0.0))
     src = open_source(data)
     inertial = load_inertial(data, src.kind, src.stamps, imu_enabled=True, gnss_enabled=True)
     cfg = SlamConfig().model_copy(update={"loop": SlamConfig().loop.model_copy(
@@ -194,13 +205,14 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
     assert result.T_gravity_map is not None and result.geo is not None
     T_world_seq = np.eye(4)
     T_world_seq[:3] = np.loadtxt(data / "T_world_seq.txt").reshape(3, 4)
-    # 8 s of driving nearly straight: the tilt is as good as the accelerometer bias's prior
-    # (0.2 m/s^2, 1.2 deg 1-sigma) allows, against the fixes' 3 m vertical noise: 2 sigma.
-    # Measured 1.49 deg with the odometry edges' rotation floor at 0.1 deg in the IMU solve,
-    # 2.03 at 0.02 (the default: backend.inertial_odom_min_rot_sigma_deg)
     up = result.T_gravity_map[:3, :3].T @ [0.0, 0.0, 1.0]
     up_true = T_world_seq[:3, :3].T @ [0.0, 0.0, 1.0]
-    assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 2.4
+    tilt_err = np.degrees(np.arccos(np.clip(up @ up_true, -1, 1)))
+    unaligned = np.degrees(np.arccos(np.clip(up_true[2], -1, 1)))
+    # Measured: 1.31 deg off (as the accelerometer bias's prior, 0.2 m/s^2 = 1.2 deg, allows
+    # on 8 s of driving nearly straight), 7.05 deg without the alignment; bound 1.3x.
+    assert unaligned > 6.5, unaligned
+    assert tilt_err < 1.7, (tilt_err, unaligned)
     # the map frame's origin (frame 0, as the outputs anchor it) lands where the lidar was
     from lidar_slam.geo import LocalEnu
     from lidar_slam.sim.inertial import KARLSRUHE

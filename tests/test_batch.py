@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from conftest import require_ray
+from conftest import SHARED_DATA, require_ray, shared_path
 
 from lidar_slam.batch.results import COLUMNS
 
@@ -413,7 +413,7 @@ def test_a_signal_to_the_group_stops_an_embedded_batch_and_keeps_its_table(input
     assert [r["status"] for r in read_table(out)] == ["ok"] * 4
 
 
-OUSTER_BAG = REPO.parent / "shared" / "data" / "rosbags" / "ouster_os1_64_points_ros1_profile.mcap"
+OUSTER_BAG = SHARED_DATA / "rosbags" / "ouster_os1_64_points_ros1_profile.mcap"
 OUSTER_IMU = "/os1_cloud_node/imu"
 
 
@@ -423,8 +423,7 @@ def ouster_imu_offset() -> float:
     from lidar_slam.io import rosbag
     from lidar_slam.io.sources import open_source
 
-    if not OUSTER_BAG.is_file():
-        pytest.skip(f"{OUSTER_BAG} is not here")
+    shared_path("rosbags", OUSTER_BAG.name)  # skips, or fails under LIDAR_SLAM_REQUIRE_SHARED
     imu, _ = rosbag.read_imu_topic(OUSTER_BAG, OUSTER_IMU)
     return float(open_source(OUSTER_BAG).stamps[0] - imu.stamp_s[0])
 

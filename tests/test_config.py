@@ -14,7 +14,20 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.yaml")), ids=lambda p: p.name)
 def test_shipped_configs_load(path):
-    load_config(path)
+    """Every value the file sets is the loaded config's (and nothing is refused)."""
+    import yaml
+
+    cfg = load_config(path).model_dump()
+    overlay = yaml.safe_load(path.read_text()) or {}
+
+    def check(expected, got, where):
+        if isinstance(expected, dict):
+            for key, value in expected.items():
+                check(value, got[key], f"{where}.{key}")
+        else:
+            assert got == expected, (where, got, expected)
+
+    check(overlay, cfg, path.name)
 
 
 @pytest.mark.parametrize("overlay,where", [
@@ -39,8 +52,11 @@ def test_out_of_range_values_are_refused(overlay, where):
 
 
 def test_zero_where_zero_means_off_is_accepted():
-    load_config(None, {"data": {"min_range_m": 0}, "checkpoint": {"every_keyframes": 0},
-                       "loop": {"verify": {"probe_shift_m": 0}}})
+    cfg = load_config(None, {"data": {"min_range_m": 0}, "checkpoint": {"every_keyframes": 0},
+                             "loop": {"verify": {"probe_shift_m": 0}},
+                             "odometry": {"refine_below_mps": 0}})
+    assert cfg.data.min_range_m == 0 and cfg.checkpoint.every_keyframes == 0
+    assert cfg.loop.verify.probe_shift_m == 0 and cfg.odometry.refine_below_mps == 0
 
 
 def test_negative_voxel_size_is_one_line_and_exit_2(tmp_path):

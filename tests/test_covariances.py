@@ -104,32 +104,63 @@ def test_covariances_csv_has_one_row_per_keyframe_with_21_values(tmp_path):
         assert np.all(np.linalg.eigvalsh(cov) > 0)
 
 
-@pytest.mark.parametrize("args", [pytest.param((), marks=pytest.mark.xfail(
-    strict=True, raises=AssertionError, reason=(
-        "overconfident with loops: mean NEES 14.7 (7.9 without). Each keyframe edge's own "
-        "information (clouds' Hessian over their residual) predicts ~1.1 cm per edge where this "
-        "VLP-16 odometry errs 4.6 cm, mostly as a stretch of the whole circuit, which the 6 "
-        "loops close around without seeing it (a posteriori variance factor 0.14): the loops "
-        "then tighten covariances without moving the poses (ATE 0.081 -> 0.083 m)"))),
-    ("--no-loops",)], ids=["loops", "no-loops"])
-def test_keyframe_position_nees_is_within_a_factor_3_of_3_on_sample_scans(tmp_path, args):
-    """Measured: mean NEES 7.91 without loops (51 keyframes; 0.94 with the fixed 5 cm / 0.1
-    deg per keyframe edge that each edge's own information replaced)."""
-    nees = _nees(_run(SAMPLE, tmp_path / "run", *args), SAMPLE)
-    assert 1.0 <= nees.mean() <= 9.0, (nees.mean(), np.round(nees, 2))
+# Mean NEES of each run below, measured (one thread: a run is the same bytes every time), and
+# the band a test holds it to: a factor NEES_BAND either way. Consecutive keyframes' errors are
+# one drift, not independent draws, so the mean of K NEES values need not settle near 3 as K
+# independent chi-square(3) draws would (the sample run with loops: 14.7); what a test holds is
+# that the covariances stay as (in)consistent as measured: 2.5x overconfidence (covariances 2.5x too
+# small, NEES 2.5x up) or 2.5x underconfidence fails, and so does a mean outside 1-9 (a factor
+# 3 from consistent) where the run was inside it.
+NEES_BAND = 2.0
 
 
-@pytest.mark.parametrize("args", [(), ("--no-imu",)], ids=["imu", "lidar-only"])
-def test_keyframe_position_nees_is_within_a_factor_3_of_3_on_a_handheld_walk(
-        handheld_walk, tmp_path, args):
-    """Measured: mean NEES 7.58 with the IMU (its factors in the final solve; odometry edges
-    1 cm / 0.1 deg there), 2.01 without (40 keyframes, no loop in half a lap)."""
-    nees = _nees(_run(handheld_walk, tmp_path / "run", *args), handheld_walk)
-    assert 1.0 <= nees.mean() <= 9.0, (nees.mean(), np.round(nees, 2))
+def _check_nees(nees: np.ndarray, measured: float) -> None:
+    mean = float(nees.mean())
+    print(f"mean NEES {mean:.3f} (measured {measured})")
+    assert measured / NEES_BAND <= mean <= measured * NEES_BAND, (mean, np.round(nees, 2))
+    if 1.0 <= measured <= 9.0:
+        assert 1.0 <= mean <= 9.0, (mean, np.round(nees, 2))
 
 
-def test_keyframe_position_nees_is_within_a_factor_3_of_3_on_a_simulated_kitti_slice(sim_map):
+def _ate_m(run: Path, data: Path) -> float:
+    from lidar_slam.eval.metrics import ate
+
+    poses = read_kitti_poses(run / "poses_kitti.txt")
+    truth = open_source(data).ground_truth[: len(poses)]
+    value = ate(poses, truth).rmse_m
+    print(f"ATE {value:.4f} m")
+    return value
+
+
+@pytest.mark.parametrize("args,measured", [((), 14.7), (("--no-loops",), 7.91)],
+                         ids=["loops", "no-loops"])
+def test_keyframe_position_nees_on_sample_scans_stays_where_it_was_measured(tmp_path, args,
+                                                                            measured):
+    """Without loops: 7.91 (51 keyframes; 0.94 with the fixed 5 cm / 0.1 deg per keyframe edge
+    that each edge's own information replaced). With loops overconfident, 14.7: each keyframe
+    edge's own information (clouds' Hessian over their residual) predicts ~1.1 cm per edge where
+    this VLP-16 odometry errs 4.6 cm, mostly as a stretch of the whole circuit, which the 6 loops
+    close around without seeing it (a posteriori variance factor 0.14): the loops then tighten
+    covariances without moving the poses (ATE 0.081 -> 0.083 m). Held where it is, so that it
+    cannot get worse unnoticed."""
+    _check_nees(_nees(_run(SAMPLE, tmp_path / "run", *args), SAMPLE), measured)
+
+
+@pytest.mark.parametrize("args,measured_nees,measured_ate", [((), 2.28, 0.123),
+                                                             (("--no-imu",), 1.41, 0.179)],
+                         ids=["imu", "lidar-only"])
+def test_keyframe_position_nees_and_ate_on_a_handheld_walk(handheld_walk, tmp_path, args,
+                                                           measured_nees, measured_ate):
+    """The 20 s hand-held walk (no loop in half a lap), with the IMU (its factors in the final
+    solve) and without: mean NEES 2.28 and 1.41 (7.58 and 2.01 when issue 32 was filed), ATE
+    0.123 m and 0.179 m, each bounded at 1.3x."""
+    run = _run(handheld_walk, tmp_path / "run", *args)
+    ate_m = _ate_m(run, handheld_walk)
+    _check_nees(_nees(run, handheld_walk), measured_nees)
+    assert ate_m < 1.3 * measured_ate, (ate_m, measured_ate)
+
+
+def test_keyframe_position_nees_on_a_simulated_kitti_slice_stays_where_it_was_measured(sim_map):
     """Was 0.18 with the fixed sigmas (2-4x the HDL-64 odometry's per-keyframe error); each
-    edge's own information: 2.24 on frames 0-299 (84 keyframes)."""
-    nees = _nees(sim_map.run, sim_map.seq)
-    assert 1.0 <= nees.mean() <= 9.0, (nees.mean(), np.round(nees, 2))
+    edge's own information: 2.63 on frames 0-179."""
+    _check_nees(_nees(sim_map.run, sim_map.seq), 2.63)

@@ -52,3 +52,20 @@ def test_every_figure_in_the_readme_results_links_to_a_file_in_docs():
             cell = cell.strip()
             if re.search(r"\d", cell):
                 assert re.fullmatch(r"\[[^\]]+\]\(docs/[^)]+\)", cell), cell
+
+
+def test_the_documented_breaks_are_the_mutation_tools():
+    """docs/design.md's "Breaks the tests must catch" names every break of
+    tools/mutation_check.py, and only those; each names tests that exist."""
+    from tools.mutation_check import BREAKS
+
+    text = (REPO / "docs" / "design.md").read_text()
+    section = text.split("## Breaks the tests must catch", 1)[1].split("\n## ", 1)[0]
+    rows = [r for r in section.splitlines() if r.startswith("| `")]
+    documented = {n for r in rows for n in re.findall(r"`([a-z0-9.-]+)`", r.split("|")[1])}
+    assert documented == {b.name for b in BREAKS}
+    for b in BREAKS:
+        for test in b.tests:
+            path, _, name = test.partition("::")
+            assert (REPO / path).is_file(), test
+            assert not name or f"def {name}(" in (REPO / path).read_text(), test

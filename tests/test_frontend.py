@@ -1,6 +1,7 @@
 """Front-end stages: range crop, deskew, voxel downsample."""
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.frontend.crop import range_mask
@@ -28,6 +29,37 @@ def test_deskew_recovers_points_captured_during_constant_velocity_motion():
     assert np.abs(captured - world).max() > 0.5  # the distortion is real
     fixed = deskew(captured, times, T_prev_curr, period)
     np.testing.assert_allclose(fixed, world, atol=1e-9)
+
+
+def test_a_scan_is_deskewed_once_by_the_motion_it_was_taken_in():
+    """The pipeline's path (Deskewer, every point): a sweep of a static scene taken while moving
+    at constant velocity comes out as the scene seen from the sensor at the sweep's middle, the
+    expected points computed here from the motion alone. Deskewing twice (as kiss-icp would
+    if it were given the times too) leaves them off by the whole correction again."""
+    from lidar_slam.config import DataConfig
+    from lidar_slam.frontend.deskew import Deskewer
+    from lidar_slam.frontend.odometry import VoxelSelector
+    from lidar_slam.types import Scan
+
+    rng = np.random.default_rng(3)
+    world = rng.uniform(-30, 30, (1500, 3))
+    period = 0.1
+    T_prev_curr = make_pose(Rotation.from_euler("xyz", [0.5, -1, 10], degrees=True).as_matrix(),
+                            [1.5, 0.2, 0.0])
+    times = np.sort(rng.uniform(0, period, len(world)))
+    ref = 0.5 * (times[0] + times[-1])
+    # world: the scene in the sensor's frame at the sweep's middle; each point seen from the
+    # pose the sensor has at its capture time, moving at constant velocity through ref
+    captured = np.array([
+        transform_points(inverse(interpolate(np.eye(4), T_prev_curr, (t - ref) / period)),
+                         p[None])[0] for p, t in zip(world, times)])
+    expected = world
+    deskewer = Deskewer(DataConfig(deskew_all_points=True), 0.5, VoxelSelector())
+    deskewer(Scan(0, 0.0, captured[:10], times[:10]), np.eye(4))  # the previous scan: period
+    out = deskewer(Scan(1, period, captured, times), T_prev_curr)
+    assert out.ref_s == pytest.approx(ref)
+    assert np.abs(captured - expected).max() > 0.5  # the distortion is real
+    np.testing.assert_allclose(out.points, expected, atol=1e-9)
 
 
 def test_deskew_is_identity_without_motion_and_at_the_stamp():

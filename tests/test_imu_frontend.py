@@ -99,7 +99,10 @@ def test_imu_deskew_and_prediction_track_a_fast_turning_walk_at_least_as_well_as
     print(f"ATE imu {ate_imu:.4f} cv {ate_cv:.4f}; deviation imu {m_imu:.4f} m {r_imu:.3f} deg, "
           f"cv {m_cv:.4f} m {r_cv:.3f} deg")
     assert m_imu < 0.5 * m_cv and r_imu < 0.5 * r_cv
-    assert ate_imu <= ate_cv + 0.005, (ate_imu, ate_cv)
+    # Measured: ATE 0.0218 m with the IMU, 0.1500 m without; bounds 1.3x (and the IMU's
+    # advantage kept at 3x where it is 6.9x).
+    assert ate_imu < 0.028, (ate_imu, ate_cv)
+    assert ate_cv < 0.20 and ate_imu < ate_cv / 3, (ate_imu, ate_cv)
 
 
 def test_a_rotated_and_offset_imu_gives_the_poses_of_an_imu_at_the_lidar(walks):

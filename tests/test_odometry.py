@@ -90,6 +90,21 @@ def test_slow_scans_refined_against_keyframes_keep_the_turn_kiss_icp_loses(kitti
     assert on_deg < 0.5 and on_m < 0.3, (on_m, on_deg)
 
 
+def test_a_fast_car_is_not_refined_and_a_braking_one_is():
+    """odometry.refine_below_mps (5 m/s) on the last motion over the period; 0 switches the
+    refinement off whatever the speed."""
+    odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1}}))
+    for step_m, period_s, slow in ((1.0, 0.1, False), (0.45, 0.1, True), (0.55, 0.1, False),
+                                   (2.0, 0.5, True), (0.0, 0.1, True)):
+        odo.last_delta = np.eye(4)
+        odo.last_delta[:3, 3] = [0.6 * step_m, 0.8 * step_m, 0.0]
+        assert odo.is_slow(period_s) is slow, (step_m, period_s)
+    odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
+                                                       "refine_below_mps": 0.0}}))
+    odo.last_delta = np.eye(4)
+    assert odo.is_slow(0.1) is False
+
+
 @pytest.mark.shared_data
 def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe in the middle of a slow stretch, restored into a fresh

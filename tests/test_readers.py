@@ -5,7 +5,7 @@ import pytest
 
 from lidar_slam.errors import InputError
 from lidar_slam.io.ply import write_xyz_ply
-from lidar_slam.io.point_times import relative_seconds, time_unit_s
+from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import FolderSource, KittiSource, correct_kitti_scan, open_source
 from lidar_slam.io.trajectory import read_times
@@ -54,17 +54,23 @@ def test_time_units_are_inferred(raw, span):
 
 
 @pytest.mark.parametrize("dtype", ["f4", "f8", "i4", "i8", "u4", "u8"])
-def test_offsets_take_the_unit_time_unit_s_gives_the_raw_field(dtype):
-    """relative_seconds picks the unit from the span it already has: the one time_unit_s reads
-    from the raw field, for offsets of every unit and datatype (times near zero, no stamp)."""
+def test_offsets_written_in_s_us_and_ns_come_back_in_seconds(dtype):
+    """Sweeps of 0.05-1 s written as offsets from the stamp in seconds, microseconds and
+    nanoseconds (every datatype that holds them) come back in seconds: the expected values are
+    the unit each file was written in, not what time_unit_s decides."""
     rng = np.random.default_rng(0)
-    for span in (0.1, 0.5, 2.0, 1e3, 1e5, 1e6, 5e6, 1e8):
-        raw = np.sort(rng.uniform(0, span, 1000)).astype(dtype)
-        scale = time_unit_s(raw)
-        if max(abs(float(raw.min())), abs(float(raw.max()))) * scale > 1.0:
-            continue  # not an offset: taken from the earliest point (another test)
-        expected = raw.astype(np.float64) * scale if scale != 1.0 else raw.astype(np.float64)
-        np.testing.assert_array_equal(relative_seconds(raw), expected)
+    for sweep_s in (0.05, 0.1, 0.5, 1.0):
+        t = np.sort(rng.uniform(0, sweep_s, 1000))
+        for unit_s in (1.0, 1e-6, 1e-9):
+            if dtype[0] in "iu" and unit_s == 1.0:
+                continue  # whole seconds cannot hold a sweep
+            raw = t / unit_s
+            raw = (np.round(raw) if dtype[0] in "iu" else raw).astype(dtype)
+            expected = raw.astype(np.float64) * unit_s  # the written values, in seconds
+            np.testing.assert_allclose(relative_seconds(raw), expected, rtol=1e-12, atol=0,
+                                       err_msg=f"{sweep_s} s sweep in {unit_s} s units")
+            np.testing.assert_allclose(relative_seconds(raw), t, atol=max(unit_s, 1e-6) * 0.6
+                                       + (1e-7 * sweep_s if dtype == "f4" else 0.0))
 
 
 def test_relative_times_keep_their_zero_and_absolute_ones_start_at_zero():

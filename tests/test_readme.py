@@ -30,7 +30,7 @@ def test_readme_python_api_example_runs(tmp_path):
     found = re.match(r"(\d+) poses, (\d+) map points, ATE ([\d.]+) m", proc.stdout)
     assert found, proc.stdout
     assert int(found.group(1)) == 71 and int(found.group(2)) > 10_000
-    assert float(found.group(3)) < 0.5
+    assert float(found.group(3)) < 0.10  # measured 0.078 m (configs/sample.yaml); 1.3x
     proc = subprocess.run([sys.executable, "open_map.py"], cwd=tmp_path, capture_output=True,
                           text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr

@@ -115,6 +115,15 @@ def test_simulate_imu_noise_has_the_bmi088_white_noise_and_a_slow_bias():
     white_a = np.diff(imu.accel - imu.accel_bias - imu.accel_true, axis=0).std() / np.sqrt(2)
     assert white_g == pytest.approx(BMI088.gyro_noise_density * np.sqrt(200.0), rel=0.05)
     assert white_a == pytest.approx(BMI088.accel_noise_density * np.sqrt(200.0), rel=0.05)
+    # The measurements carry the bias: their mean error is the bias's mean, to the white noise's
+    # share (n = 2001 samples), and the bias is there (BMI088 start spread 0.1 deg/s, 5 mg).
+    n = len(imu.stamps_s)
+    for meas, true, bias, white in ((imu.gyro, 0.0, imu.gyro_bias, white_g),
+                                    (imu.accel, imu.accel_true, imu.accel_bias, white_a)):
+        np.testing.assert_allclose((meas - true).mean(0), bias.mean(0),
+                                   atol=5 * white / np.sqrt(n))
+    assert np.linalg.norm(imu.gyro_bias[0]) > 0.2 * BMI088.gyro_bias_sigma
+    assert np.linalg.norm(imu.accel_bias[0]) > 0.2 * BMI088.accel_bias_sigma
     # The bias wanders slowly: over 10 s far less than its initial spread allows.
     drift = np.abs(imu.gyro_bias[-1] - imu.gyro_bias[0])
     assert np.all(drift < 10 * BMI088.gyro_bias_random_walk * np.sqrt(10.0))

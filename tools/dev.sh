@@ -2,8 +2,9 @@
 # One-command setup for a fresh machine (Python >= 3.10 with venv; no root, no apt needed:
 # open3d's missing libusb-1.0.so.0 is supplied by the libusb-package wheel at import time).
 #   bash tools/dev.sh demo   install into .venv and run lidar-slam on sample_scans/ -> runs/sample
-#   bash tools/dev.sh test   install with the test, cluster (Ray) and pcap extras (and ouster-sdk,
-#                            without its pins: pyproject.toml says why) and run the test suite
+#   bash tools/dev.sh test   install with the test, cluster (Ray), pcap and rko extras (and
+#                            ouster-sdk, without its pins: pyproject.toml says why) and run the
+#                            test suite
 #   bash tools/dev.sh lint   install with the test extra and run ruff (the rules: pyproject.toml)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,7 +22,7 @@ case "$cmd" in
     "$VENV/bin/lidar-slam" run sample_scans --out runs/sample --overwrite "$@"
     ;;
   test)
-    "$VENV/bin/python" -m pip install -q -e ".[test,cluster,pcap]"
+    "$VENV/bin/python" -m pip install -q -e ".[test,cluster,pcap,rko]"
     "$VENV/bin/python" -m pip install -q --no-deps "ouster-sdk==1.0.1"
     "$VENV/bin/python" -m pytest -q "$@"
     ;;
