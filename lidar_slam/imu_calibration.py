@@ -328,12 +328,12 @@ class Window:
 
 
 def calibrate(source, imu: ImuSamples, cfg, given_offset_s: float | None = None,
-              need_rotation: bool = True, window_s: float = WINDOW_S
-              ) -> tuple[Estimate | None, Window]:
-    """The estimate from a lidar-only odometry over the first scans of source (growing until
-    confident or window_s; module doc), or None when too few intervals were registered;
-    given_offset_s: the config's offset (then only the rotation is estimated). need_rotation:
-    whether a confident rotation is needed to stop early."""
+              need_rotation: bool = True, window_s: float = WINDOW_S, start: int = 0,
+              count: int | None = None) -> tuple[Estimate | None, Window]:
+    """The estimate from a lidar-only odometry over the first scans of the run (source's
+    scans start.. start + count, growing until confident or window_s; module doc), or None when
+    too few intervals were registered; given_offset_s: the config's offset (then only the
+    rotation is estimated). need_rotation: whether a confident rotation is needed to stop."""
     from lidar_slam.frontend.deskew import Deskewer
     from lidar_slam.frontend.odometry import Odometry, VoxelSelector
 
@@ -345,7 +345,8 @@ def calibrate(source, imu: ImuSamples, cfg, given_offset_s: float | None = None,
         coarse_offset_s(imu.stamp_s, stamps) if stamps is not None and len(stamps) else 0.0
     search = 0.0 if given_offset_s is not None else SEARCH_S
     win, est, confident_before = Window(), None, False
-    for scan in source.scans(0, len(source)):
+    count = len(source) - start if count is None else count
+    for scan in source.scans(start, count):
         d = deskew(scan, odo.last_delta)
         res = odo.step(d)
         win.scans += 1
@@ -354,7 +355,7 @@ def calibrate(source, imu: ImuSamples, cfg, given_offset_s: float | None = None,
             win.poses.append(res.T_world_ref)
         n = len(win.t_s) - 1
         span = win.t_s[-1] - win.t_s[0] if win.t_s else 0.0
-        last = span >= window_s or win.scans == len(source)
+        last = span >= window_s or win.scans == count
         if n >= MIN_INTERVALS and (win.scans % CHECK_EVERY == 0 or last):
             est = estimate(imu, win.turns(), coarse, search)
             ok = est.rotation_ok() or (not need_rotation and est.offset_ok())
@@ -403,11 +404,13 @@ def _with_values(cfg, offset_s: float | None, R: np.ndarray | None):
     return cfg.model_copy(update={"imu": cfg.imu.model_copy(update=update)})
 
 
-def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool):
+def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: int = 0,
+            count: int | None = None):
     """The run's config and IMU input once the offset and the mounting the config does not give
     are found from the data: (cfg with the values used, inertial with the IMU on the scans'
     clock, or without it and one warning line why when an estimate is not confident).
-    summary.json's imu.calibration says what was estimated, its confidence and what was used."""
+    summary.json's imu.calibration says what was estimated, its confidence and what was used.
+    The window is the run's first scans (start, count)."""
     import dataclasses
 
     from lidar_slam.io.inertial_input import on_scan_clock
@@ -419,7 +422,8 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool):
     # The window's own odometry runs with the config's mounting unused: a plain lidar config.
     window_cfg = cfg.model_copy(update={"imu": cfg.imu.model_copy(
         update={"T_lidar_imu": [0.0] * 6, "time_offset_s": 0.0})})
-    est, win = calibrate(source, imu, window_cfg, given_offset, need_rotation=mount_auto)
+    est, win = calibrate(source, imu, window_cfg, given_offset, need_rotation=mount_auto,
+                         start=start, count=count)
     calibration = {"time_offset_s_from": "data" if offset_auto else "config",
                    "R_lidar_imu_from": "data" if mount_auto else "config or input",
                    "window_scans": win.scans, "window_seconds": round(win.seconds, 2),
