@@ -174,16 +174,15 @@ def run(seq, out, **imu) -> dict:
 
 
 def test_an_imu_the_config_does_not_describe_is_calibrated_and_used(walk, tmp_path):
-    """Offset and mounting found from the data (within the issue's 2 ms and twice its 1 deg:
-    a lidar-only odometry lags a fast turn by ~2 ms), written into the run's config, and the
-    run as good as with the true values given."""
+    """Offset and mounting found from the data (within the issue's 2 ms and 1 deg), written
+    into the run's config, and the run within 10 % of the one given the true values."""
     seq, T_true = walk
     auto = run(seq, tmp_path / "auto")
     imu = auto["imu"]
     assert imu["used"] and imu["T_lidar_imu_from"].startswith("the data")
     est = imu["calibration"]["estimate"]
-    assert abs(est["time_offset_s"] - 0.1) < 0.004
-    assert angle_deg(T_true[:3, :3].T @ np.array(est["R_lidar_imu"])) < 2.0
+    assert abs(est["time_offset_s"] - 0.1) < 0.002, est
+    assert angle_deg(T_true[:3, :3].T @ np.array(est["R_lidar_imu"])) < 1.0, est
     used = load_config(tmp_path / "auto" / "config.yaml").imu
     assert used.time_offset_s == est["time_offset_s"]
     given = run(seq, tmp_path / "given", time_offset_s=0.1,
@@ -191,7 +190,7 @@ def test_an_imu_the_config_does_not_describe_is_calibrated_and_used(walk, tmp_pa
     assert "calibration" not in given["imu"]  # a value given wins: nothing estimated
     lidar_only = run(seq, tmp_path / "no-imu", enabled=False)
     assert auto["ate_rmse_m"] < lidar_only["ate_rmse_m"]
-    assert auto["ate_rmse_m"] < 1.5 * given["ate_rmse_m"], (auto["ate_rmse_m"], given["ate_rmse_m"])
+    assert auto["ate_rmse_m"] < 1.1 * given["ate_rmse_m"], (auto["ate_rmse_m"], given["ate_rmse_m"])
 
 
 def test_too_short_a_run_to_calibrate_goes_lidar_only_saying_why(walk, tmp_path, caplog):
