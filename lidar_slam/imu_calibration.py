@@ -509,12 +509,16 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
                    "window_seconds": round(win.seconds, 2),
                    **({} if win.first_pass is None else {"first_pass": win.first_pass}),
                    **({} if est is None else {"estimate": est.summary()})}
-    why = _not_confident(est, win, offset_auto, mount_auto)
+    why = _not_confident(est, win, offset_auto, mount_auto, imu)
     stamps = getattr(source, "stamps", None)
+    carried = getattr(source, "sensor_streams", None)
+    if why is not None and mount_auto and carried is not None and carried.T_lidar_imu is None:
+        why += f" ({carried.reason('imu')})"  # a dataset that publishes no mounting says so
     if why is not None:
         log.warning("%s: IMU not used: %s; the run goes on lidar-only (imu.time_offset_s and "
                     "imu.T_lidar_imu in the config use it as given)", imu.source, why)
-        summary = {**inertial.summary, "imu": {"used": False, "reason": why,
+        summary = {**inertial.summary, "imu": {"used": False, "source": imu.source,
+                                               "samples": len(imu), "reason": why,
                                                "calibration": calibration}}
         return cfg, dataclasses.replace(inertial, imu=None, summary=summary)
     offset = est.time_offset_s if offset_auto else given_offset
@@ -530,14 +534,22 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
     return cfg, dataclasses.replace(inertial, imu=stream, summary=summary)
 
 
-def _not_confident(est: Estimate | None, win: Window, offset_auto: bool, mount_auto: bool
-                   ) -> str | None:
+def _gyro_path(imu: ImuSamples) -> str:
+    """How far the gyro turned over its stream: the excitation there is to calibrate with."""
+    w = np.linalg.norm(imu.gyro_radps, axis=1)
+    path = float(np.degrees((0.5 * (w[1:] + w[:-1]) * np.diff(imu.stamp_s)).sum()))
+    return (f"the gyro turned {path:.3g} deg in all over its {len(imu)} samples, "
+            f"{imu.stamp_s[-1] - imu.stamp_s[0]:.3g} s")
+
+
+def _not_confident(est: Estimate | None, win: Window, offset_auto: bool, mount_auto: bool,
+                   imu: ImuSamples) -> str | None:
     """Why an estimate cannot be used (one line), or None."""
     wanted = " and ".join(w for w, on in (("clock offset", offset_auto),
                                           ("mounting", mount_auto)) if on)
     if est is None:
         return (f"its {wanted} cannot be found from the data: {len(win.t_s)} scans registered "
-                f"in the first {win.scans} ({MIN_INTERVALS + 1} needed)")
+                f"in the first {win.scans} ({MIN_INTERVALS + 1} needed; {_gyro_path(imu)})")
     exc = ", ".join(f"{v:.1f}" for v in est.excitation_dps)
     over = (f"over {est.span_s:.1f} s of scans (lidar rotation rate RMS about its three "
             f"principal axes {exc} deg/s)")
