@@ -14,7 +14,8 @@ integrated over the same interval shifted by a candidate offset, gives the IMU's
    (Kabsch: imu.closest_rotation), both centred (a constant gyro bias drops out) and with a
    scale (a gyro in deg/s is frontend.imu_check's to tell; the rotation does not depend on it).
 4. Offset again, with the rotation: the least-squares residual of the vectors at offsets around
-   the peak (the rotation re-fitted at each), a parabola through its minimum. PASSES times 3-4.
+   the peak (the rotation re-fitted at each), a parabola through its minimum; 3-4 again until
+   the offset settles (at most PASSES times).
 
 Confidence: the offset's and the rotation's standard deviations, each the larger of the least
 squares' (the residual's variance over the parabola's curvature; over the excitation about the
@@ -52,7 +53,7 @@ log = logging.getLogger(__name__)
 SEARCH_S = 1.0  # the fine offset is searched within this of the coarse one (s)
 OFFSET_STEP_S = 0.002  # grid of the magnitudes' correlation (s); a parabola refines the peak
 REFINE_STEP_S = 0.0005  # grid of the vector residual around the peak (s)
-PASSES = 3  # rotation, then offset around the last one
+PASSES = 10  # at most: rotation, then offset around the last one, until it settles
 MIN_INTERVALS = 30  # registered intervals before a first estimate
 CHECK_EVERY = 20  # scans between two estimates while the window grows
 WINDOW_S = 30.0  # the window's longest span (s of scans)
@@ -69,9 +70,10 @@ MIN_CORRELATION = 0.8
 N_PARAMETERS = 8  # rotation 3, scale 1, centre (bias) 3, offset 1
 JACKKNIFE_BLOCKS = 6  # stretches of the window for the confidence
 TRIM_FACTOR = 3.0  # intervals with a residual beyond this x the median are left out
-GYRO_PASS = True  # the second, gyro-aided pass (calibrate)
+GYRO_PASSES = 3  # gyro-aided passes at most (calibrate), until the offset moves < SETTLED_S
+SETTLED_S = 0.001
 GYRO_KNOTS = 9  # knots of a sweep's gyro motion in that pass
-SECOND_SEARCH_S = 0.02  # the offset searched within this of the first pass's (s)
+SECOND_SEARCH_S = 0.05  # the offset searched within this of the first pass's (s)
 
 
 @dataclass(frozen=True)
@@ -258,9 +260,12 @@ def estimate(imu: ImuSamples, turns: LidarTurns, coarse_s: float = 0.0,
         dof = 3 * fits[j].n - N_PARAMETERS
         sigma_s = float(np.sqrt(fits[j].residual / dof / a)) if a > 0 and dof > 0 \
             else float("inf")
-        if abs(new - offset) > 8 * REFINE_STEP_S:  # the minimum is beyond the fine grid
+        moved = abs(new - offset)
+        if moved > 8 * REFINE_STEP_S:  # the minimum is beyond the fine grid: another pass
             sigma_s = float("inf")
         offset = float(np.clip(new, fine[0], fine[-1]))
+        if moved < 0.5 * REFINE_STEP_S:
+            break
     vecs, covered = at(np.array([offset]))
     c = covered[0] & _inliers(turns, vecs, covered)
     if c.sum() < 3:
@@ -431,18 +436,23 @@ def calibrate(source, imu: ImuSamples, cfg, given_offset_s: float | None = None,
 
     win = _window_pass(source, cfg, start, count, window_s, confident)
     est = state["est"]
-    if est is not None and est.offset_ok() and GYRO_PASS:
+    first = est
+    for _ in range(GYRO_PASSES if est is not None and est.correlation >= MIN_CORRELATION else 0):
         gyro = GyroIntegral(imu.stamp_s, imu.gyro_radps)
         aided = _window_pass(source, cfg, start, win.scans, np.inf, lambda w, last: False,
                              (gyro, est.R_lidar_imu, est.time_offset_s))
         again = estimate(imu, aided.turns(), est.time_offset_s if search else coarse,
                          SECOND_SEARCH_S if search else 0.0)
-        if again.offset_ok():
-            win = dataclasses.replace(aided, scans=win.scans, passes=2,
-                                      first_pass={"time_offset_s": round(est.time_offset_s, 6),
-                                                  "R_lidar_imu_rotvec_deg": est.summary()[
-                                                      "R_lidar_imu_rotvec_deg"]})
-            est = dataclasses.replace(again, coarse_offset_s=est.coarse_offset_s)
+        if again.correlation < MIN_CORRELATION:
+            break
+        moved = abs(again.time_offset_s - est.time_offset_s)
+        est = dataclasses.replace(again, coarse_offset_s=first.coarse_offset_s)
+        win = dataclasses.replace(aided, scans=win.scans, passes=win.passes + 1,
+                                  first_pass={"time_offset_s": round(first.time_offset_s, 6),
+                                              "R_lidar_imu_rotvec_deg": first.summary()[
+                                                  "R_lidar_imu_rotvec_deg"]})
+        if moved < SETTLED_S:
+            break
     win.seconds = time.perf_counter() - t_start
     return est, win
 
