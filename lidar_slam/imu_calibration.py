@@ -28,11 +28,12 @@ on lidar-only).
 
 The lidar-only window grows CHECK_EVERY scans at a time, from MIN_INTERVALS, until the estimate
 is confident at two checks in a row or WINDOW_S of scans were registered: a walk that turns
-about two axes early stops early. A second pass over the same scans then deskews each sweep and
-guesses each pose with the gyro's rotation as the first estimate places it, and estimates again
-within SECOND_SEARCH_S: a lidar-only odometry lags a fast turn (its deskew assumes the last
-interval's motion), which put the offset ~2 ms off and cost a 30 s walk 27 % of ATE; with the
-second pass 0.2 ms and 1 % (docs/benchmarks/2026-12-04-imu-calibration.md, with the cost).
+about two axes early stops early. Gyro-aided passes over the same scans then deskew each sweep
+and guess each pose with the gyro's rotation as the last estimate places it, and estimate again
+within SECOND_SEARCH_S, until the offset moves less than SETTLED_S (at most GYRO_PASSES): a
+lidar-only odometry lags a fast turn (its deskew assumes the last interval's motion), which put
+the offset 2 to 16 ms off on 30 s walks and cost one 27 % of ATE; aided, within 1 ms
+(docs/benchmarks/2026-12-04-imu-calibration.md, with the cost).
 """
 
 from __future__ import annotations
@@ -415,7 +416,7 @@ def calibrate(source, imu: ImuSamples, cfg, given_offset_s: float | None = None,
     too few intervals were registered; given_offset_s: the config's offset (then only the
     rotation is estimated). need_rotation: whether a confident rotation is needed to stop.
 
-    Then the second, gyro-aided pass over the same scans (module doc)."""
+    Then the gyro-aided passes over the same scans (module doc)."""
     t_start = time.perf_counter()
     stamps = np.asarray(source.stamps, dtype=np.float64) if source.stamps is not None else None
     coarse = given_offset_s if given_offset_s is not None else \
@@ -507,7 +508,7 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
     if inertial.imu is None or not (offset_auto or mount_auto):
         return cfg, inertial
     imu = inertial.imu
-    given_offset = None if offset_auto else float(cfg.imu.time_offset_s)
+    given_offset = None if offset_auto else 0.0  # a given offset: applied by load_inertial
     # The window's own odometry runs with the config's mounting unused: a plain lidar config.
     window_cfg = cfg.model_copy(update={"imu": cfg.imu.model_copy(
         update={"T_lidar_imu": [0.0] * 6, "time_offset_s": 0.0})})
@@ -531,10 +532,12 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
                                                "samples": len(imu), "reason": why,
                                                "calibration": calibration}}
         return cfg, dataclasses.replace(inertial, imu=None, summary=summary)
-    offset = est.time_offset_s if offset_auto else given_offset
-    cfg = _with_values(cfg, offset if offset_auto else None,
+    cfg = _with_values(cfg, est.time_offset_s if offset_auto else None,
                        est.R_lidar_imu if mount_auto else None)
-    stream, imu_summary = on_scan_clock(imu, "imu", offset, stamps, lenient=True)
+    if offset_auto:
+        stream, imu_summary = on_scan_clock(imu, "imu", est.time_offset_s, stamps, lenient=True)
+    else:  # on the scans' clock already
+        stream, imu_summary = imu, dict(inertial.summary["imu"])
     log.info("IMU calibrated from the data over %d scans (%.1f s): %s", win.scans, win.seconds,
              calibration)
     if mount_auto:

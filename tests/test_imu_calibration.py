@@ -188,6 +188,12 @@ def test_an_imu_the_config_does_not_describe_is_calibrated_and_used(walk, tmp_pa
     given = run(seq, tmp_path / "given", time_offset_s=0.1,
                 T_lidar_imu=T_true.ravel().tolist())
     assert "calibration" not in given["imu"]  # a value given wins: nothing estimated
+    # the offset given, the mounting not: only the rotation is found
+    mount_only = run(seq, tmp_path / "mount-only", time_offset_s=0.1)["imu"]
+    assert mount_only["used"] and mount_only["calibration"]["time_offset_s_from"] == "config"
+    assert mount_only["time_offset_s"] == 0.1
+    R = np.array(mount_only["calibration"]["estimate"]["R_lidar_imu"])
+    assert angle_deg(T_true[:3, :3].T @ R) < 1.0
     lidar_only = run(seq, tmp_path / "no-imu", enabled=False)
     assert auto["ate_rmse_m"] < lidar_only["ate_rmse_m"]
     assert auto["ate_rmse_m"] < 1.1 * given["ate_rmse_m"], (auto["ate_rmse_m"], given["ate_rmse_m"])
