@@ -335,10 +335,14 @@ class ImuConfig(_Section):
 
     enabled: bool = True
     # The IMU's pose in the lidar frame: 6 numbers x, y, z (m), roll, pitch, yaw (deg; extrinsic
-    # x-y-z, i.e. R = Rz(yaw) Ry(pitch) Rx(roll)), or 16 numbers, the 4x4 matrix row by row.
-    T_lidar_imu: list[float] = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    # Added to every IMU stamp to put it on the clock of the scan stamps (s).
-    time_offset_s: float = 0.0
+    # x-y-z, i.e. R = Rz(yaw) Ry(pitch) Rx(roll)), or 16 numbers, the 4x4 matrix row by row; or
+    # "auto": its rotation found from the data (lidar_slam.imu_calibration; the translation 0).
+    # Not set: the input's own calibration (a dataset's, an Ouster's metadata), else "auto".
+    T_lidar_imu: list[float] | Auto = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    # Added to every IMU stamp to put it on the clock of the scan stamps (s); or "auto": found
+    # from the data. Not set: 0 for an input whose own streams share a clock (a dataset, a
+    # pcap), else "auto".
+    time_offset_s: float | Auto = 0.0
     # Continuous-time noise of a BMI088-class MEMS unit (BST-BMI088-DS001): gyro 0.014
     # deg/s/sqrt(Hz) = 2.4e-4 rad/s/sqrt(Hz) (the datasheet's typical value as Bosch's forum
     # quotes it); accelerometer 175 ug/sqrt(Hz) = 1.7e-3 m/s^2/sqrt(Hz), UNVERIFIED (only
@@ -352,6 +356,8 @@ class ImuConfig(_Section):
     @model_validator(mode="after")
     def _extrinsic_is_rigid(self) -> ImuConfig:
         # Six finite numbers are always a rigid transform: not built here.
+        if self.T_lidar_imu == "auto":
+            return self
         if len(self.T_lidar_imu) == 6:
             if not np.all(np.isfinite(self.T_lidar_imu)):
                 raise ValueError("T_lidar_imu must be finite (x y z m, roll pitch yaw deg)")
@@ -360,7 +366,11 @@ class ImuConfig(_Section):
         return self
 
     def T_lidar_imu_matrix(self) -> np.ndarray:  # noqa: N802 (frame-named, as the project)
-        """T_lidar_imu as a 4x4 float64 array (maps IMU-frame points into the lidar frame)."""
+        """T_lidar_imu as a 4x4 float64 array (maps IMU-frame points into the lidar frame);
+        "auto" is resolved by the run driver (lidar_slam.imu_calibration) before any use."""
+        if self.T_lidar_imu == "auto":
+            raise ValueError("imu.T_lidar_imu is 'auto': found from the data by the run driver "
+                             "(lidar_slam.imu_calibration.resolve) before it is used")
         values = np.asarray(self.T_lidar_imu, dtype=np.float64)
         if len(values) == 6:  # extrinsic x-y-z: R = Rz(yaw) Ry(pitch) Rx(roll)
             from lidar_slam.geometry import matrix_from_rotvec  # NumPy: no scipy.spatial (28 MB)
@@ -380,7 +390,14 @@ class ImuConfig(_Section):
                 or np.linalg.det(R) <= 0):
             raise ValueError("T_lidar_imu is not a rigid transform (its rotation must be "
                              "orthonormal with determinant +1, its last row 0 0 0 1)")
-        return T.copy()
+        T = T.copy()
+        if np.linalg.norm(R @ R.T - np.eye(3)) > 1e-12:
+            # Printed to a few decimals, a rotation is orthonormal to ~1e-9: the IMU front-end
+            # takes a prediction off by more than 1e-11 for a diverged one (Sophus aborts at
+            # 1e-10). The nearest rotation (SVD), which leaves an exact one as it is.
+            U, _, Vt = np.linalg.svd(R)
+            T[:3, :3] = U @ Vt
+        return T
 
 
 class GnssConfig(_Section):

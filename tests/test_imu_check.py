@@ -37,8 +37,12 @@ def walk(tmp_path_factory):
 
 
 def run(seq, out, no_imu: bool = False) -> dict:
-    """summary.json of `lidar-slam run seq` (no loops: the odometry is what the IMU changes)."""
-    overrides = {"loop": {"enabled": False}, "odometry": {"max_num_threads": 1}}
+    """summary.json of `lidar-slam run seq` (no loops: the odometry is what the IMU changes),
+    the config saying what the simulator's lidar_slam.yaml says (identity, same clock): the
+    checks judge a config that is wrong; the IMU the config does not describe at all is
+    tests/test_imu_calibration.py's."""
+    overrides = {"loop": {"enabled": False}, "odometry": {"max_num_threads": 1},
+                 "imu": {"T_lidar_imu": [0.0] * 6, "time_offset_s": 0.0}}
     if no_imu:
         overrides["imu"] = {"enabled": False}
     return run_sequence(seq, out, overrides=overrides, progress=False).summary

@@ -271,7 +271,10 @@ def test_run_reports_the_imu_and_gnss_it_read_in_summary_json(tmp_path):
     n = int((stamps[-1] - stamps[0]) * 200) + 1
     _write(data / "imu.csv", IMU_HEADER, _imu_rows(n, t0=stamps[0]).tolist())
     _write(data / "gnss.csv", GNSS_HEADER, _gnss_rows(int(stamps[-1]) + 1, stamps[0]).tolist())
-    proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops")
+    # Three scans cannot calibrate an IMU (tests/test_imu_calibration.py): the config gives it.
+    given = tmp_path / "imu.yaml"
+    given.write_text("imu: {T_lidar_imu: [0, 0, 0, 0, 0, 0], time_offset_s: 0.0}\n")
+    proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops", "--config", given)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["imu"]["used"] and summary["imu"]["samples"] == n
@@ -336,17 +339,28 @@ def test_run_on_a_bag_names_the_imu_topic_it_read(tmp_path):
 
 
 def test_a_bag_imu_on_another_clock_is_refused_when_named_and_left_out_when_picked(tmp_path):
+    """With the clock offset given (here wrong: 0), a named IMU that does not overlap the
+    scans stops the run in one line, and a picked one is left out; not given, the offset is
+    to be found from the data (lidar_slam.imu_calibration), which three scans cannot do:
+    lidar-only, one line."""
     t0 = 1_700_000_000 * 10**9
     imu = [_imu_msg(k * 5_000_000, 0.0) for k in range(1, 80)]  # stamps from boot, not epoch
     path = _bag(tmp_path / "b", {
         "/points": ("sensor_msgs/msg/PointCloud2", [_cloud(t0 + k * 10**8, 0) for k in range(3)]),
         "/imu": ("sensor_msgs/msg/Imu", imu)})
-    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--imu-topic", "/imu")
+    auto = _run(path, "--out", tmp_path / "auto", "--no-loops", "--imu-topic", "/imu")
+    assert auto.returncode == 0, auto.stderr
+    assert f"{path}:/imu: IMU not used: its clock offset and mounting cannot be found" \
+        in auto.stderr
+    zero = tmp_path / "zero.yaml"
+    zero.write_text("imu: {time_offset_s: 0.0, T_lidar_imu: [0, 0, 0, 0, 0, 0]}\n")
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--imu-topic", "/imu", "--config",
+                zero)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     line = proc.stderr.strip().splitlines()[-1]
     assert f"{path}:/imu: IMU stamps 0.005..0.395 s do not overlap the scans'" in line, line
     assert not (tmp_path / "o").exists()
-    proc = _run(path, "--out", tmp_path / "o", "--no-loops")
+    proc = _run(path, "--out", tmp_path / "o", "--no-loops", "--config", zero)
     assert proc.returncode == 0, proc.stderr
     assert f"{path}:/imu: not used: IMU stamps 0.005..0.395 s" in proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
@@ -356,11 +370,13 @@ def test_a_bag_imu_on_another_clock_is_refused_when_named_and_left_out_when_pick
 def test_the_ouster_bags_own_imu_on_the_sensor_clock_does_not_stop_a_lidar_run(rosbags_dir,
                                                                               tmp_path):
     """The shared Ouster recording stamps its clouds with the epoch and its sensor_msgs/Imu
-    with the sensor's clock (~1622 s): picked by itself, that IMU is left out with a warning."""
+    with the sensor's clock (~1622 s): picked by itself, that IMU is brought over by the
+    streams' starts, but one cloud cannot calibrate it: left out with one warning saying so."""
     cut = tmp_path / "cut.mcap"
     cut.write_bytes((rosbags_dir / "ouster_os1_64_points_ros1_profile.mcap").read_bytes()[:2**21])
     proc = _run(cut, "--out", tmp_path / "o", "--no-loops")
     assert proc.returncode == 0, proc.stderr
-    assert f"{cut}:/os1_cloud_node/imu: not used: IMU stamps 1622" in proc.stderr
+    assert f"{cut}:/os1_cloud_node/imu: IMU not used: its clock offset and mounting cannot be " \
+        "found from the data: 1 scans registered" in proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["imu"]["used"] is False and summary["frames"] == 1

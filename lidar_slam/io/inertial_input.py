@@ -57,7 +57,8 @@ def _carried_stream(carried: Carried, what: str, imu_mount_given: bool):
 
 
 def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_enabled: bool,
-                  gnss_enabled: bool, imu_offset_s: float = 0.0, gnss_offset_s: float = 0.0,
+                  gnss_enabled: bool, imu_offset_s: float | None = 0.0,
+                  gnss_offset_s: float = 0.0,
                   imu_topic: str | None = None, gnss_topic: str | None = None,
                   carried: Carried | None = None, imu_mount_given: bool = False
                   ) -> InertialInput:
@@ -67,7 +68,8 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
     its IMU only with a mounting, from the dataset or the config: imu_mount_given). scan_stamps
     (s) are checked against the streams' stamps (see check_overlap); a bag topic picked without
     being named that does not overlap them is not used (a warning, and the reason in the
-    summary) instead of stopping the run."""
+    summary) instead of stopping the run. imu_offset_s None: the IMU's offset is to be found
+    from the data; its stream comes back as read, to be placed by on_scan_clock."""
     is_bag = kind == "rosbag"
     for flag, value, enabled in (("--imu-topic", imu_topic, imu_enabled),
                                  ("--gnss-topic", gnss_topic, gnss_enabled)):
@@ -98,21 +100,32 @@ def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_
             summary[what] = {"used": False, "reason": why}
             streams[what] = None
             continue
-        stream = stream.shifted(offset_s) if offset_s else stream
-        label = "IMU" if what == "imu" else "GNSS"
-        if scan_stamps is not None and len(scan_stamps):
-            span = float(scan_stamps[0]), float(scan_stamps[-1])
-            problem = overlap_problem(stream.stamp_s, *span, label)
-            if problem is not None and (carried is not None or is_bag and topics[what] is None):
-                # A topic picked without being asked for (e.g. an Ouster's own IMU stamped by
-                # the sensor's clock) must not stop a run that can go on without it.
-                log.warning("%s: not used: %s; --no-%s silences this", stream.source, problem,
-                            what)
-                summary[what] = {"used": False, "reason": f"{stream.source}: {problem}"}
-                streams[what] = None
-                continue
-            check_overlap(stream.source, stream.stamp_s, *span, label)
-        summary[what] = {"used": True, **stream_info(stream.stamp_s, stream.source,
-                                                      stream.dropped, offset_s)}
-        streams[what] = stream
+        if offset_s is None:  # to be found from the data (imu_calibration): placed later
+            summary[what] = {"used": True, "source": stream.source}
+            streams[what] = stream
+            continue
+        lenient = carried is not None or is_bag and topics[what] is None
+        streams[what], summary[what] = on_scan_clock(stream, what, offset_s, scan_stamps,
+                                                     lenient)
     return InertialInput(streams["imu"], streams["gnss"], summary)
+
+
+def on_scan_clock(stream, what: str, offset_s: float, scan_stamps: np.ndarray | None,
+                  lenient: bool):
+    """The stream with offset_s added to its stamps, checked against the scan stamps (see
+    check_overlap), and what summary.json says of it: (stream or None, summary). lenient: a
+    stream that does not overlap the scans is not used (a warning, the reason in the summary)
+    instead of stopping the run (a topic picked without being asked for, e.g. an Ouster's own
+    IMU stamped by the sensor's clock, must not stop a run that can go on without it)."""
+    stream = stream.shifted(offset_s) if offset_s else stream
+    label = "IMU" if what == "imu" else "GNSS"
+    if scan_stamps is not None and len(scan_stamps):
+        span = float(scan_stamps[0]), float(scan_stamps[-1])
+        problem = overlap_problem(stream.stamp_s, *span, label)
+        if problem is not None and lenient:
+            log.warning("%s: not used: %s; --no-%s silences this", stream.source, problem,
+                        what)
+            return None, {"used": False, "reason": f"{stream.source}: {problem}"}
+        check_overlap(stream.source, stream.stamp_s, *span, label)
+    return stream, {"used": True, **stream_info(stream.stamp_s, stream.source, stream.dropped,
+                                               offset_s)}

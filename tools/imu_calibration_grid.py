@@ -1,0 +1,163 @@
+"""The IMU's clock offset and mounting found from the data (issue 30, item 5), over a grid of
+offsets and mountings on simulated hand-held walks.
+
+    python tools/imu_calibration_grid.py SEQ [SEQ...] --out DIR [--cases 0:0,0.2:z90,...]
+        [--json FILE]
+
+SEQ: a simulated walk with an IMU (`lidar-slam simulate --motion handheld --imu --out SEQ`,
+mounted as its lidar_slam.yaml says). Each case OFFSET:MOUNT rewrites imu.csv as an IMU on a
+clock OFFSET s behind the lidar's (stamps minus OFFSET) and turned by MOUNT (none, x90, y90,
+z90, x180, z180, xz90: 90 deg about x then z) against the simulated one, into DIR/<seq>/<case>/seq
+(the scans linked, no lidar_slam.yaml), then runs `lidar-slam run` twice: with no config (the
+offset and the mounting found from the data) and with the true values given (an overlay), and
+scores both with `lidar-slam eval` (ATE RMSE). Prints one JSON row per case: the offset found
+and its error (ms), the rotation error (deg), the sigmas, the calibration's window and cost,
+ATE auto and given, and a markdown table at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+HEADER = "stamp_s,wx,wy,wz,ax,ay,az"
+MOUNTS = {"none": [], "x90": [("x", 90)], "y90": [("y", 90)], "z90": [("z", 90)],
+          "x180": [("x", 180)], "z180": [("z", 180)], "xz90": [("x", 90), ("z", 90)]}
+DEFAULT_CASES = "0:none,0.2:none,-0.2:none,0.05:z90,-0.137:x180,1600:xz90,0:y90,0.1:z180"
+
+
+def mount_rotation(name: str) -> np.ndarray:
+    """R_new_old: the new IMU frame's axes in the simulated one (extrinsic rotations in order)."""
+    R = np.eye(3)
+    for axis, deg in MOUNTS[name]:
+        R = Rotation.from_euler(axis, deg, degrees=True).as_matrix() @ R
+    return R
+
+
+def make_case(seq: Path, dest: Path, offset_s: float, mount: str) -> np.ndarray:
+    """The walk with its IMU on a clock offset_s behind and turned by `mount`; returns the true
+    T_lidar_imu of the new IMU (4x4)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    for item in seq.iterdir():
+        if item.name in ("imu.csv", "lidar_slam.yaml") or (dest / item.name).exists():
+            continue
+        os.symlink(item.resolve(), dest / item.name)
+    overlay = yaml.safe_load((seq / "lidar_slam.yaml").read_text())["imu"]
+    from lidar_slam.config import ImuConfig
+
+    T_lidar_old = ImuConfig(T_lidar_imu=overlay["T_lidar_imu"]).T_lidar_imu_matrix()
+    rows = np.loadtxt(seq / "imu.csv", delimiter=",", skiprows=1, ndmin=2)
+    R = mount_rotation(mount)  # v_new = R^T v_old... the new frame is the old turned by R
+    rows[:, 0] -= offset_s + float(overlay.get("time_offset_s", 0.0))
+    rows[:, 1:4] = rows[:, 1:4] @ R  # (R^T w)^T = w^T R
+    rows[:, 4:7] = rows[:, 4:7] @ R
+    np.savetxt(dest / "imu.csv", rows, delimiter=",", header=HEADER, comments="",
+               fmt=["%.9f"] + ["%.10g"] * 6)
+    T = T_lidar_old.copy()
+    T[:3, :3] = T_lidar_old[:3, :3] @ R
+    return T
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lidar_slam.cli", *args], capture_output=True,
+                          text=True, check=False)
+
+
+def run_and_score(data: Path, run_dir: Path, config: Path | None) -> dict:
+    args = ["run", str(data), "--out", str(run_dir), "--overwrite"]
+    if config is not None:
+        args += ["--config", str(config)]
+    t0 = time.perf_counter()
+    proc = cli(*args)
+    out = {"exit": proc.returncode, "wall_s": round(time.perf_counter() - t0, 1)}
+    if proc.returncode != 0:
+        out["stderr"] = proc.stderr.strip().splitlines()[-1:]
+        return out
+    out["summary"] = json.loads((run_dir / "summary.json").read_text())
+    ev = cli("eval", str(run_dir / "poses_kitti.txt"), str(data / "poses.txt"), "--calib",
+             str(data / "calib.txt"))
+    for line in ev.stdout.splitlines():
+        if line.startswith("ATE RMSE"):
+            out["ate_m"] = float(line.split()[2])
+    return out
+
+
+def run_case(seq: Path, out: Path, case: str) -> dict:
+    off_text, mount = case.split(":")
+    offset_s = float(off_text)
+    root = out / seq.name / case.replace(":", "_")
+    data = root / "seq"
+    T_true = make_case(seq, data, offset_s, mount)
+    given = root / "given.yaml"
+    given.write_text(yaml.safe_dump({"imu": {
+        "T_lidar_imu": [round(float(v), 9) + 0.0 for v in T_true.ravel()],
+        "time_offset_s": offset_s}}))
+    auto = run_and_score(data, root / "auto", None)
+    told = run_and_score(data, root / "given", given)
+    row = {"seq": seq.name, "case": case, "offset_s": offset_s, "mount": mount,
+           "ate_auto_m": auto.get("ate_m"), "ate_given_m": told.get("ate_m"),
+           "wall_auto_s": auto["wall_s"], "wall_given_s": told["wall_s"]}
+    imu = auto.get("summary", {}).get("imu", {})
+    cal = imu.get("calibration", {})
+    est = cal.get("estimate", {})
+    row.update(imu_used=imu.get("used"), reason=imu.get("reason"),
+               window_scans=cal.get("window_scans"), window_s=cal.get("window_seconds"))
+    if est:
+        R = np.array(est["R_lidar_imu"])
+        err = Rotation.from_matrix(T_true[:3, :3].T @ R).magnitude()
+        row.update(offset_found_s=est["time_offset_s"],
+                   offset_error_ms=round(1e3 * (est["time_offset_s"] - offset_s), 3),
+                   offset_sigma_ms=est["offset_sigma_ms"],
+                   rotation_error_deg=round(float(np.degrees(err)), 3),
+                   rotation_sigma_deg=est["rotation_sigma_deg"], correlation=est["correlation"])
+    if row["ate_auto_m"] and row["ate_given_m"]:
+        row["ate_ratio"] = round(row["ate_auto_m"] / row["ate_given_m"], 3)
+    return row
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| walk | offset (s) | mount | found (s) | error (ms) | sigma (ms) | rotation error "
+             "(deg) | sigma (deg) | IMU used | window (scans, s) | ATE auto (m) | ATE given (m) "
+             "| ratio |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        def f(key, fmt="{}", r=r):
+            v = r.get(key)
+            return "-" if v is None else fmt.format(v)
+        lines.append(f"| {r['seq']} | {r['offset_s']:g} | {r['mount']} | {f('offset_found_s')} "
+                     f"| {f('offset_error_ms')} | {f('offset_sigma_ms')} | "
+                     f"{f('rotation_error_deg')} | {f('rotation_sigma_deg')} | "
+                     f"{f('imu_used')} | {f('window_scans')}, {f('window_s')} | "
+                     f"{f('ate_auto_m', '{:.3f}')} | {f('ate_given_m', '{:.3f}')} | "
+                     f"{f('ate_ratio')} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("seqs", type=Path, nargs="+")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--cases", default=DEFAULT_CASES)
+    ap.add_argument("--json", type=Path, help="Write the rows here too.")
+    args = ap.parse_args()
+    rows = []
+    for seq in args.seqs:
+        for case in args.cases.split(","):
+            row = run_case(seq, args.out, case)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    print(markdown(rows))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
