@@ -66,13 +66,28 @@ def corrupt(rows: np.ndarray, case: str) -> tuple[np.ndarray, str]:
     return r, "%.9f"
 
 
-def make_case(seq: Path, dest: Path, case: str) -> Path:
-    """A copy of seq whose scans are links and whose imu.csv is the case's."""
+def link_sequence(seq: Path, dest: Path, skip: tuple[str, ...]) -> None:
+    """dest: seq's files as symbolic links, but for those named in skip (written by the caller)."""
     dest.mkdir(parents=True, exist_ok=True)
     for item in seq.iterdir():
-        if item.name == "imu.csv" or (dest / item.name).exists():
+        if item.name in skip or (dest / item.name).exists():
             continue
         os.symlink(item.resolve(), dest / item.name)
+
+
+def ate_m(run_dir: Path, data: Path) -> float | None:
+    """The run's ATE RMSE (m) against the sequence's truth, as `lidar-slam eval` prints it."""
+    ev = cli("eval", str(run_dir / "poses_kitti.txt"), str(data / "poses.txt"), "--calib",
+             str(data / "calib.txt"))
+    for line in ev.stdout.splitlines():
+        if line.startswith("ATE RMSE"):
+            return float(line.split()[2])
+    return None
+
+
+def make_case(seq: Path, dest: Path, case: str) -> Path:
+    """A copy of seq whose scans are links and whose imu.csv is the case's."""
+    link_sequence(seq, dest, skip=("imu.csv",))
     rows = np.loadtxt(seq / "imu.csv", delimiter=",", skiprows=1, ndmin=2)
     rows, stamp_fmt = corrupt(rows, case)
     np.savetxt(dest / "imu.csv", rows, delimiter=",", header=HEADER, comments="",
@@ -107,11 +122,9 @@ def run_case(seq: Path, out: Path, case: str) -> dict:
         row["imu_used"] = s.get("imu", {}).get("used")
         row["imu_rate_hz"] = s.get("imu", {}).get("rate_hz")
         row["imu_check"] = s.get("imu_check")
-        ev = cli("eval", str(run_dir / "poses_kitti.txt"), str(data / "poses.txt"),
-                 "--calib", str(data / "calib.txt"))
-        for line in ev.stdout.splitlines():
-            if line.startswith("ATE RMSE"):
-                row["ate_m"] = float(line.split()[2])
+        ate = ate_m(run_dir, data)
+        if ate is not None:
+            row["ate_m"] = ate
     return row
 
 

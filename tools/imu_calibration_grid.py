@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,7 +27,11 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-HEADER = "stamp_s,wx,wy,wz,ax,ay,az"
+if __package__ in (None, ""):  # run as a script: `tools` importable from the repository root
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tools.bad_imu import HEADER, ate_m, cli, link_sequence  # noqa: E402
+
 MOUNTS = {"none": [], "x90": [("x", 90)], "y90": [("y", 90)], "z90": [("z", 90)],
           "x180": [("x", 180)], "z180": [("z", 180)], "xz90": [("x", 90), ("z", 90)]}
 DEFAULT_CASES = "0:none,0.2:none,-0.2:none,0.05:z90,-0.137:x180,1600:xz90,0:y90,0.1:z180"
@@ -46,11 +48,7 @@ def mount_rotation(name: str) -> np.ndarray:
 def make_case(seq: Path, dest: Path, offset_s: float, mount: str) -> np.ndarray:
     """The walk with its IMU on a clock offset_s behind and turned by `mount`; returns the true
     T_lidar_imu of the new IMU (4x4)."""
-    dest.mkdir(parents=True, exist_ok=True)
-    for item in seq.iterdir():
-        if item.name in ("imu.csv", "lidar_slam.yaml") or (dest / item.name).exists():
-            continue
-        os.symlink(item.resolve(), dest / item.name)
+    link_sequence(seq, dest, skip=("imu.csv", "lidar_slam.yaml"))
     overlay = yaml.safe_load((seq / "lidar_slam.yaml").read_text())["imu"]
     from lidar_slam.config import ImuConfig
 
@@ -67,11 +65,6 @@ def make_case(seq: Path, dest: Path, offset_s: float, mount: str) -> np.ndarray:
     return T
 
 
-def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "lidar_slam.cli", *args], capture_output=True,
-                          text=True, check=False)
-
-
 def run_and_score(data: Path, run_dir: Path, config: Path | None) -> dict:
     args = ["run", str(data), "--out", str(run_dir), "--overwrite"]
     if config is not None:
@@ -83,11 +76,9 @@ def run_and_score(data: Path, run_dir: Path, config: Path | None) -> dict:
         out["stderr"] = proc.stderr.strip().splitlines()[-1:]
         return out
     out["summary"] = json.loads((run_dir / "summary.json").read_text())
-    ev = cli("eval", str(run_dir / "poses_kitti.txt"), str(data / "poses.txt"), "--calib",
-             str(data / "calib.txt"))
-    for line in ev.stdout.splitlines():
-        if line.startswith("ATE RMSE"):
-            out["ate_m"] = float(line.split()[2])
+    ate = ate_m(run_dir, data)
+    if ate is not None:
+        out["ate_m"] = ate
     return out
 
 

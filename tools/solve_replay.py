@@ -26,9 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bank  # noqa: E402
-import benchmark  # noqa: E402
+if __package__ in (None, ""):  # run as a script: `tools` importable from the repository root
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tools import bank, benchmark  # noqa: E402
 
 
 def capture(root: Path, out: Path, only: set[str]) -> None:
