@@ -128,6 +128,28 @@ def test_sigint_writes_partial_outputs(tmp_path, kitti16):
     assert 1 <= len(poses) <= 16
 
 
+def test_a_signal_after_the_command_is_over_is_ignored(tmp_path):
+    """The command's process ignores Ctrl-C once its command is over: Python restores the default
+    handler while it shuts down, and a Ctrl-C there killed a finished run with exit -2 (a CI
+    failure of test_sigint_writes_partial_outputs). The caller's own process keeps its handler."""
+    import signal
+
+    code = ("import signal, sys\n"
+            "from lidar_slam.cli import entry\n"
+            "sys.argv = ['lidar-slam', '--version']\n"
+            "try:\n    entry()\nexcept SystemExit as e:\n"
+            "    print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN, e.code)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.stdout.split()[-2:] == ["True", "0"], proc.stdout + proc.stderr
+    before = signal.getsignal(signal.SIGINT)
+    from lidar_slam.cli import app
+
+    with pytest.raises(SystemExit):
+        app(args=["--version"])
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def _wait_for_odometry_lines(proc, out: Path, lines: int) -> Path:
     """Wait (up to 2 min) until a running `lidar-slam run` streamed `lines` odometry lines."""
     import time

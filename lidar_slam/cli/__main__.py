@@ -1,6 +1,6 @@
 """`python -m lidar_slam.cli ...`: the same as the `lidar-slam` command."""
 
-from lidar_slam.cli import app
+from lidar_slam.cli import entry
 
 if __name__ == "__main__":
-    app()
+    entry()
