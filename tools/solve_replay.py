@@ -7,7 +7,8 @@ capture runs lidar-slam (in this process, with each sequence's bank overlay: too
 on every built bank sequence and pickles the arguments of lidar_slam.backend.inertial.solve
 (config, keyframe poses, edges, trajectory, IMU, fixes, edge information) to DIR/<name>.pkl.
 replay re-runs only that solve on each capture, with config overrides, and prints per sequence
-the keyframe ATE (m, rigid alignment) of the pose graph it starts from and of the solve, and the
+the keyframe ATE (m, rigid alignment) of the pose graph it starts from and of the solve, the mean
+NEES of the solve's keyframe positions (tools/bank.py's position_nees, expected 3) and the
 odometry variance factors (rotation, translation) it found; then the median and the worst.
 
 Keyframe ATE is not the bank's frame ATE (no frames between keyframes, no front-end change):
@@ -98,14 +99,22 @@ def replay(captures: Path, settings: list[str], root: Path, only: set[str]) -> N
         before = _ate(np.stack([T_world_kf[k] for k in keys]), gt)
         after = _ate(np.stack([result.kf_poses[k] for k in keys]), gt)
         factors = result.summary.get("imu", {}).get("odometry_variance_factor")
-        rows.append((name, before, after))
-        print(f"{name:26s} graph {before:.4f} m  solve {after:.4f} m  variance factors {factors}",
-              flush=True)
+        covs = {i: result.covariances[k] for i, k in enumerate(keys) if k in result.covariances}
+        # As the run's files: the first keyframe (frame 0) is the identity in both
+        est = np.stack([result.kf_poses[k] for k in keys])
+        nees = bank.position_nees(np.linalg.inv(est[0]) @ est, np.linalg.inv(gt[0]) @ gt, covs)
+        nees_mean = float(nees.mean()) if len(nees) else float("nan")
+        rows.append((name, before, after, nees_mean))
+        print(f"{name:26s} graph {before:.4f} m  solve {after:.4f} m  NEES {nees_mean:6.2f}  "
+              f"variance factors {factors}", flush=True)
     if rows:
         solved = [r[2] for r in rows]
         worst = max(rows, key=lambda r: r[2])
         print(f"{'median':26s} graph {statistics.median(r[1] for r in rows):.4f} m  solve "
               f"{statistics.median(solved):.4f} m; worst solve {worst[2]:.4f} m ({worst[0]})")
+        inside = sum(1 <= r[3] <= 9 for r in rows)
+        print(f"{'NEES':26s} median {statistics.median(r[3] for r in rows):.2f}; in 1..9 on "
+              f"{inside} of {len(rows)}")
 
 
 def main(argv: list[str] | None = None) -> int:
