@@ -100,9 +100,13 @@ def replay(captures: Path, settings: list[str], root: Path, only: set[str]) -> N
         after = _ate(np.stack([result.kf_poses[k] for k in keys]), gt)
         factors = result.summary.get("imu", {}).get("odometry_variance_factor")
         covs = {i: result.covariances[k] for i, k in enumerate(keys) if k in result.covariances}
-        # As the run's files: the first keyframe (frame 0) is the identity in both
+        # As the run's files: frame 0 at its stamp is the identity in both (the first node is
+        # at the middle of its sweep: RunTrajectory)
         est = np.stack([result.kf_poses[k] for k in keys])
-        nees = bank.position_nees(np.linalg.inv(est[0]) @ est, np.linalg.inv(gt[0]) @ gt, covs)
+        k0 = keys[0]
+        at_stamp = est[0] @ np.linalg.inv(tr.kf_odom[k0]) @ tr.kf_stamp_odom[k0]
+        est[0] = at_stamp
+        nees = bank.position_nees(np.linalg.inv(at_stamp) @ est, np.linalg.inv(gt[0]) @ gt, covs)
         nees_mean = float(nees.mean()) if len(nees) else float("nan")
         rows.append((name, before, after, nees_mean))
         print(f"{name:26s} graph {before:.4f} m  solve {after:.4f} m  NEES {nees_mean:6.2f}  "
