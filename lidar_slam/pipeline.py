@@ -105,6 +105,23 @@ class RunResult:
         return out
 
 
+def lost_information(info: np.ndarray | None, sigma_m: float, cfg: SlamConfig) -> np.ndarray:
+    """The information of an odometry edge across a failure reset: its own (or the configured
+    sigmas') covariance plus kiss-icp's threshold at the reset, sigma_m, in every translation
+    and sigma_m / data.max_range_m (rad: kiss-icp counts a rotation as the arc it makes at the
+    maximum range) in every rotation. The registration's Hessian says how well the scan fitted
+    the local map; across a reset the local map itself was wrong by about that much."""
+    from lidar_slam.backend.factors import sigmas_to_information
+
+    b = cfg.backend
+    if info is None:
+        info = sigmas_to_information(b.odom_rot_sigma_deg, b.odom_trans_sigma_m)
+    cov = np.linalg.inv(info)
+    cov += np.diag([(sigma_m / cfg.data.max_range_m) ** 2] * 3 + [sigma_m ** 2] * 3)
+    out = np.linalg.inv(cov)
+    return 0.5 * (out + out.T)
+
+
 class Pipeline:
     """Calls the stages in flow order for one scan at a time; finish() ends the run."""
 
@@ -223,6 +240,12 @@ class Pipeline:
         if self.edge_information is None:
             return None
         info = self.edge_information.add(T_world_kf, points)
+        store = self.result.store
+        if kf_id > 0:
+            sigma = self.odometry.failures.sigma_between(store.frame_index(kf_id - 1),
+                                                         store.frame_index(kf_id))
+            if sigma > 0:
+                info = lost_information(info, sigma, self.cfg)
         if info is not None:
             self.result.odom_information[kf_id] = info
         return info

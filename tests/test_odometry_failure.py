@@ -91,3 +91,25 @@ def test_a_resumed_odometry_keeps_its_failures_and_its_restarted_threshold(stree
     assert resumed.failures.resets == odo.failures.resets
     assert resumed.failures.episodes == odo.failures.episodes
     assert resumed.failures.kernel(sigma, 2.0) == odo.failures.kernel(sigma, 2.0)
+
+
+def test_the_odometry_edge_across_a_reset_is_as_unsure_as_the_threshold_was(streets):
+    """Weights from the data: across a reset the odometry's motion is known no better than
+    kiss-icp's threshold when it was reset, so that edge's covariance holds it (the keyframes
+    after it were 224x overconfident on a failed walk of the bank); the other edges keep the
+    registration's own information."""
+    a, b = (list(open_source(s).scans(0, N)) for s in streets)
+    good, _, _ = run(a)
+    spliced, _, sigmas = run(a[:SPLICE] + b[SPLICE:])
+    at = spliced.failure_resets[0]
+    sigma_at_reset = sigmas[at - 1]  # the threshold the reset was decided with (then restarted)
+    frames = [spliced.store.frame_index(k) for k in range(len(spliced.store))]
+    across = next(k for k in range(1, len(frames)) if frames[k - 1] < at <= frames[k])
+    cov = np.linalg.inv(spliced.odom_information[across])
+    assert np.all(np.diag(cov)[3:] >= sigma_at_reset ** 2 * 0.99)
+    assert np.diag(cov)[3:].max() < 2 * sigma_at_reset ** 2
+    for k, info in spliced.odom_information.items():
+        if frames[k] < at and k in good.odom_information:
+            np.testing.assert_array_equal(info, good.odom_information[k])
+        elif k != across:
+            assert np.diag(np.linalg.inv(info))[3:].max() < sigma_at_reset ** 2 / 10

@@ -54,6 +54,8 @@ class FailureWatch:
     scans: int  # failing scans in a row before a reset
     cloud_voxel_m: float  # voxel of the keyframe clouds' KD-tree
     resets: list[int] = field(default_factory=list)  # scan indices of the resets
+    # kiss-icp's threshold (m) when each reset was decided: how far off the odometry could be
+    reset_sigmas_m: list[float] = field(default_factory=list)
     episodes: list[int] = field(default_factory=list)  # scan index each episode started at
     _bad: int = 0
     _n_seen: int = 0
@@ -76,6 +78,7 @@ class FailureWatch:
             return False
         self._bad = 0
         self.resets.append(scan_index)
+        self.reset_sigmas_m.append(float(sigma))
         if self._n_seen - self._last_reset > EPISODE_SCANS:
             self.episodes.append(scan_index)
             log.warning("scan %d: odometry failed (%.0f %% of the scan within %.2f m of the last "
@@ -84,6 +87,13 @@ class FailureWatch:
                         scan_index, 100 * fitness, self.inlier_m, sigma)
         self._last_reset = self._n_seen
         return True
+
+    def sigma_between(self, after: int, upto: int) -> float:
+        """The largest kiss-icp threshold (m) at a reset of a scan in (after, upto], else 0:
+        across a reset the odometry's motion is known no better than that (the threshold is
+        the RMS of its recent corrections)."""
+        return max((s for i, s in zip(self.resets, self.reset_sigmas_m) if after < i <= upto),
+                   default=0.0)
 
     def kernel(self, sigma: float, initial_m: float) -> float:
         """The kernel (and a third of the correspondence distance) kiss-icp registers with:
@@ -114,6 +124,7 @@ class FailureWatch:
 
     def state(self) -> dict[str, np.ndarray]:
         return {"failure_resets": np.asarray(self.resets, np.int64),
+                "failure_reset_sigmas": np.asarray(self.reset_sigmas_m, np.float64),
                 "failure_episodes": np.asarray(self.episodes, np.int64),
                 "failure_counters": np.array([self._bad, self._n_seen, self._last_reset])}
 
@@ -121,6 +132,8 @@ class FailureWatch:
         if "failure_resets" not in state:  # a checkpoint from before 2026-12-03
             return
         self.resets = [int(i) for i in state["failure_resets"]]
+        self.reset_sigmas_m = [float(v) for v in state.get(  # not in checkpoints before 12-04
+            "failure_reset_sigmas", np.zeros(len(self.resets)))]
         self.episodes = [int(i) for i in state["failure_episodes"]]
         self._bad, self._n_seen, self._last_reset = (int(v) for v in state["failure_counters"])
         self._clouds = {}
