@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from lidar_slam.frontend.imu_check import MAX_MOUNT_DEG, ImuCheck
-from lidar_slam.frontend.inertial import _is_rigid
+from lidar_slam.frontend.imu_prediction import _is_rigid
 from lidar_slam.run.runner import run_sequence
 from lidar_slam.sim import SENSORS
-from lidar_slam.sim.inertial import ImuOptions
+from lidar_slam.sim.imu_gnss import ImuOptions
 from lidar_slam.sim.motions import simulate_handheld
 from tools.bad_imu import corrupt, make_case
 

@@ -1,5 +1,5 @@
 """The IMU in the front-end: deskew along the integrated IMU and kiss-icp started from its
-prediction (lidar_slam.frontend.inertial), on short simulated hand-held walks."""
+prediction (lidar_slam.frontend.imu_prediction), on short simulated hand-held walks."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.eval.metrics import ate
 from lidar_slam.frontend.deskew import SweepMotion, deskew
 from lidar_slam.geometry import interpolate, make_pose, rotation_angle_deg
-from lidar_slam.io.inertial import ImuSamples
+from lidar_slam.io.imu_gnss import ImuSamples
 from lidar_slam.io.inertial_input import load_inertial
 from lidar_slam.io.sources import open_source
 from lidar_slam.sim import SENSORS, simulate_sequence
-from lidar_slam.sim.inertial import NOISELESS, ImuOptions
+from lidar_slam.sim.imu_gnss import NOISELESS, ImuOptions
 
 SENSOR = dataclasses.replace(SENSORS["vlp16"], n_azimuth=600)
 N_SCANS = 45

@@ -19,7 +19,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from lidar_slam.config import load_config
 from lidar_slam.errors import ConfigError, InputError
-from lidar_slam.io.inertial import read_gnss_csv, read_imu_csv
+from lidar_slam.io.imu_gnss import read_gnss_csv, read_imu_csv
 from lidar_slam.io.inertial_input import load_inertial
 from lidar_slam.io.rosbag import read_gnss_topic, read_imu_topic
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.io.datasets.common import Carried
-from lidar_slam.io.inertial import (
+from lidar_slam.io.imu_gnss import (
     GNSS_FILE,
     IMU_FILE,
     GnssFixes,

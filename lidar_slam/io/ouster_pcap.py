@@ -25,7 +25,7 @@ import numpy as np
 
 from lidar_slam.errors import InputError
 from lidar_slam.io.datasets.common import Carried
-from lidar_slam.io.inertial import imu_from_rows
+from lidar_slam.io.imu_gnss import imu_from_rows
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)

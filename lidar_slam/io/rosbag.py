@@ -52,7 +52,7 @@ if sys.version_info >= (3, 14):
     from compression.zstd import ZstdDecompressor, ZstdError
 else:  # rosbags depends on the backport below 3.14
     from backports.zstd import ZstdDecompressor, ZstdError
-from lidar_slam.io.inertial import GnssFixes, ImuSamples, gnss_from_rows, imu_from_rows
+from lidar_slam.io.imu_gnss import GnssFixes, ImuSamples, gnss_from_rows, imu_from_rows
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import INTENSITY_FIELDS, TIME_FIELDS
 from lidar_slam.types import Scan

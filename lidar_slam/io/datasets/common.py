@@ -13,7 +13,7 @@ import numpy as np
 
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import interpolate
-from lidar_slam.io.inertial import GnssFixes, ImuSamples
+from lidar_slam.io.imu_gnss import GnssFixes, ImuSamples
 from lidar_slam.io.pointcloud import CloudData, make_scan
 from lidar_slam.types import Scan
 
