@@ -13,7 +13,9 @@ poses_kitti.txt and odometry_kitti.txt and compares summary.json's `imu`, `gnss`
 `input_kind`; it prints one line per input and exits 1 on any difference. The inputs: the repo's
 sample_scans, the tests' dataset fixtures, ../shared/data (KITTI 00's first 16 scans, the Ouster
 OS0 loop, the four Ouster bag containers) and, from `prepare`, a 10 s simulated handheld walk with
-imu.csv + gnss.csv, an Ouster pcap and a Velodyne pcap written by tests/pcap_writers.py.
+imu.csv + gnss.csv, its first 60 scans with IMU and GNSS as a ROS2 bag (run with the overlay's
+IMU calibration and without: found from the data), an Ouster pcap and a Velodyne pcap written
+by tests/pcap_writers.py.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ def cases(inputs: Path) -> dict[str, list[str]]:
         "sim_handheld_imu_gnss": [str(inputs / "sim")],
         "ouster_pcap": [str(inputs / "os1.pcap"), "--no-loops"],
         "velodyne_pcap": [str(inputs / "vlp16.pcap"), "--no-loops"],
+        "sim_bag_imu_gnss": [str(inputs / "sim_bag"), "--no-loops",
+                             "--config", str(inputs / "sim" / "lidar_slam.yaml")],
+        "sim_bag_imu_gnss_auto": [str(inputs / "sim_bag"), "--no-loops"],
         "newer_college": [str(FIXTURES / "newer_college/01_short_experiment"), "--no-loops"],
         "mulran": [str(FIXTURES / "mulran/KAIST01"), "--no-loops"],
         "nclt": [str(FIXTURES / "nclt/2012-01-08"), "--no-loops",
@@ -86,6 +91,72 @@ def prepare(inputs: Path) -> None:
     motion = make_motion("handheld", site, 0, 2.0)
     write_vlp16_pcap(inputs / "vlp16.pcap", site.world, motion.trajectory, 2.0,
                      hour_s=1_700_002_800.0)
+    _sim_bag(inputs / "sim", inputs / "sim_bag")
+
+
+def _sim_bag(seq: Path, out: Path, n_scans: int = 60, t0_ns: int = 1_700_000_000 * 10**9
+             ) -> None:
+    """The first n_scans of a simulated KITTI-layout sequence with imu.csv and gnss.csv as a
+    ROS2 bag (MCAP storage): PointCloud2 (x, y, z, intensity, float32 t in s from the stamp),
+    sensor_msgs/Imu and NavSatFix, every stamp moved t0_ns on (an epoch clock)."""
+    import numpy as np
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+
+    def header(stamp_s: float, frame: str):
+        ns = t0_ns + round(stamp_s * 1e9)
+        return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+            sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    def cloud(k: int, stamp_s: float):
+        xyzi = np.fromfile(seq / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        t = np.fromfile(seq / "velodyne_times" / f"{k:06d}.bin", np.float32)
+        data = np.column_stack([xyzi, t]).astype(np.float32)
+        fields = [T["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1)
+                  for i, n in enumerate(("x", "y", "z", "intensity", "t"))]
+        return T["sensor_msgs/msg/PointCloud2"](
+            header=header(stamp_s, "lidar"), height=1, width=len(data), fields=fields,
+            is_bigendian=False, point_step=20, row_step=20 * len(data),
+            data=np.frombuffer(data.tobytes(), np.uint8), is_dense=True)
+
+    v3, zero9 = T["geometry_msgs/msg/Vector3"], np.zeros(9)
+    quat = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+
+    def imu(row):
+        return T["sensor_msgs/msg/Imu"](
+            header=header(row[0], "imu"), orientation=quat, orientation_covariance=zero9,
+            angular_velocity=v3(x=row[1], y=row[2], z=row[3]), angular_velocity_covariance=zero9,
+            linear_acceleration=v3(x=row[4], y=row[5], z=row[6]),
+            linear_acceleration_covariance=zero9)
+
+    def fix(row):
+        cov = np.diag([row[4] ** 2, row[4] ** 2, row[5] ** 2]).ravel()
+        return T["sensor_msgs/msg/NavSatFix"](
+            header=header(row[0], "gnss"),
+            status=T["sensor_msgs/msg/NavSatStatus"](status=0, service=1), latitude=row[1],
+            longitude=row[2], altitude=row[3], position_covariance=cov,
+            position_covariance_type=2)
+
+    stamps = np.loadtxt(seq / "times.txt")[:n_scans]
+    end = stamps[-1] + 0.1
+    imu_rows = [r for r in np.loadtxt(seq / "imu.csv", delimiter=",", skiprows=1) if r[0] <= end]
+    fix_rows = [r for r in np.loadtxt(seq / "gnss.csv", delimiter=",", skiprows=1) if r[0] <= end]
+    streams = {"/points": ("sensor_msgs/msg/PointCloud2",
+                           [(s, cloud(k, s)) for k, s in enumerate(stamps)]),
+               "/imu": ("sensor_msgs/msg/Imu", [(r[0], imu(r)) for r in imu_rows]),
+               "/fix": ("sensor_msgs/msg/NavSatFix", [(r[0], fix(r)) for r in fix_rows])}
+    if out.exists():
+        import shutil
+
+        shutil.rmtree(out)
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for topic, (msgtype, msgs) in streams.items():
+            conn = writer.add_connection(topic, msgtype, typestore=ts)
+            for stamp_s, msg in msgs:
+                writer.write(conn, t0_ns + round(stamp_s * 1e9), ts.serialize_cdr(msg, msgtype))
 
 
 def run(inputs: Path, out: Path, checkout: Path, only: list[str]) -> None:
