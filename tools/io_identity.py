@@ -7,15 +7,17 @@ Three steps, so the inputs are made once and each checkout runs on the same byte
     python tools/io_identity.py run /tmp/hio/inputs /tmp/hio/after  --checkout .
     python tools/io_identity.py compare /tmp/hio/before /tmp/hio/after
 
-`run` calls `python -m lidar_slam.cli run` with the checkout first on PYTHONPATH (a `git worktree
-add /tmp/old main` gives an old one), one output folder per input. `compare` cmp's
+`run` calls `python -m lidar_slam.cli run` with the checkout first on PYTHONPATH (`git archive
+main | tar -x -C /tmp/old` gives an old one), one output folder per input; the old checkout
+runs with this tool's cases, so a case it cannot read shows as missing. `compare` cmp's
 poses_kitti.txt and odometry_kitti.txt and compares summary.json's `imu`, `gnss` and
-`input_kind`; it prints one line per input and exits 1 on any difference. The inputs: the repo's
-sample_scans, the tests' dataset fixtures, ../shared/data (KITTI 00's first 16 scans, the Ouster
-OS0 loop, the four Ouster bag containers) and, from `prepare`, a 10 s simulated handheld walk with
-imu.csv + gnss.csv, its first 60 scans with IMU and GNSS as a ROS2 bag (run with the overlay's
-IMU calibration and without: found from the data), an Ouster pcap and a Velodyne pcap written
-by tests/pcap_writers.py.
+`input_kind` (less imu.calibration.window_seconds, a wall-clock time); it prints one line per
+input and exits 1 on any difference. The inputs: the repo's sample_scans, the tests' dataset
+fixtures, ../shared/data (KITTI 00's first 16 scans, the Ouster OS0 loop, the four Ouster bag
+containers) and, from `prepare`, a 10 s simulated handheld walk with imu.csv + gnss.csv, its
+first 60 scans with IMU and GNSS as a ROS2 bag (run with the overlay's IMU calibration and
+without: found from the data), an Ouster pcap and a Velodyne pcap written by
+tests/pcap_writers.py. ~4 min per `run` on 2 cores.
 """
 
 from __future__ import annotations
@@ -174,11 +176,21 @@ def run(inputs: Path, out: Path, checkout: Path, only: list[str]) -> None:
         print(f"{name}: exit {proc.returncode} in {time.monotonic() - t0:.1f} s", flush=True)
 
 
+WALL_CLOCK = ("window_seconds",)  # imu.calibration's time on this machine, not a result
+
+
+def _without_wall_clock(value):
+    if isinstance(value, dict):
+        return {k: _without_wall_clock(v) for k, v in value.items() if k not in WALL_CLOCK}
+    return value
+
+
 def _sections(summary: Path) -> dict:
+    """summary.json's input_kind, imu and gnss, wall-clock times left out."""
     if not summary.exists():
         return {}
     data = json.loads(summary.read_text())
-    return {key: data.get(key) for key in ("input_kind", "imu", "gnss")}
+    return {key: _without_wall_clock(data.get(key)) for key in ("input_kind", "imu", "gnss")}
 
 
 def compare(before: Path, after: Path) -> int:
