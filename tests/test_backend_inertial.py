@@ -172,7 +172,6 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
     import dataclasses
 
     from lidar_slam import pipeline
-    from lidar_slam.io.inertial_input import load_inertial
     from lidar_slam.io.sources import open_source
     from lidar_slam.run.outputs import write_run
     from lidar_slam.sim import SENSORS
@@ -198,7 +197,7 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
                    np.eye(4), 0.0, imu=ImuOptions(), gnss=GnssOptions(jump_fraction=0.0,
                                                                        dropout=0.0))
     src = open_source(data)
-    inertial = load_inertial(data, src.kind, src.stamps, imu_enabled=True, gnss_enabled=True)
+    inertial = src.inertial(imu_enabled=True, gnss_enabled=True)
     cfg = SlamConfig().model_copy(update={"loop": SlamConfig().loop.model_copy(
         update={"enabled": False})})
     result = pipeline.run(src.scans(), cfg, inertial=inertial)

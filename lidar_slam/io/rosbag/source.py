@@ -11,7 +11,9 @@ from typing import Any
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.inertial_input import ImuGnssStreams, Stream
 from lidar_slam.io.rosbag.bag import open_bag, topic_messages
+from lidar_slam.io.rosbag.imu_gnss import read_gnss_topic, read_imu_topic
 from lidar_slam.io.rosbag.pointcloud2 import PointCloud2Error, decode_pointcloud2, header_stamp_ns
 from lidar_slam.io.rosbag.reader import BAG_ERRORS, LEAKS, problem
 from lidar_slam.io.rosbag.topics import pick_cloud_topic
@@ -20,18 +22,19 @@ from lidar_slam.types import Scan
 log = logging.getLogger(__name__)
 
 
-class RosbagSource:
+class RosbagSource(ImuGnssStreams):
     """PointCloud2 messages of one topic of a ROS1/ROS2 bag or MCAP file, as Scans.
 
     index = 0-based position among the scans kept: a message whose header stamp is not after
     the previous kept one (a duplicate or a step back) is dropped, so stamps strictly increase
     and `len`, `scans(start, count)` and a resumed run all count the same scans. A recording cut
     short gives its complete messages. Both are counted in `input_notes` and logged once.
-    See the package docstring for stamps and times.
+    See the package docstring for stamps and times. Its IMU and GNSS are the bag's Imu and
+    NavSatFix topics: the one named, else the only one (io.rosbag.imu_gnss).
     """
 
     kind = "rosbag"
-    sensor_streams = None  # the IMU / GNSS topics are read by io.inertial_input.load_inertial
+    topics_apply = True  # --imu-topic / --gnss-topic
 
     def __init__(self, path: str | Path, topic: str | None = None):
         self.path = Path(path)
@@ -145,4 +148,13 @@ class RosbagSource:
         return Scan(index, header_stamp_ns(msg) * 1e-9, cloud.points, cloud.point_times,
                     cloud.intensity, f"{self.path}:{self.topic}[{position}]")
 
+    def own_stream(self, what: str, topic: str | None) -> tuple[Stream | None, str | None]:
+        """The bag's sensor_msgs/Imu ("imu") or NavSatFix ("gnss") topic: topic, else the only
+        one; (None, why not) when there is none."""
+        reader = read_imu_topic if what == "imu" else read_gnss_topic
+        return reader(self.path, topic)
 
+    def lenient(self, what: str, topic: str | None) -> bool:
+        """A topic picked without being named that misses the scans is left out (an Ouster's
+        own IMU, stamped by the sensor's clock), a named one stops the run."""
+        return topic is None
