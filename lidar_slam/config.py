@@ -230,7 +230,7 @@ class BackendConfig(_Section):
     # The final solve also starts from a global initialisation (gtsam InitializePose3) and keeps
     # it when it ends at a lower error than the one started at the live estimate.
     global_init: bool = True
-    # The odometry edges in the final solve with the IMU (backend.inertial), 1-sigma per
+    # The odometry edges in the final solve with the IMU (backend.imu_gnss_solve), 1-sigma per
     # keyframe, Huber-robust (huber_k): the pose graph's 5 cm above let the IMU's velocity bend a
     # hand-held walk (300-scan walks: keyframe ATE 0.061 -> 0.078 m; 0.048 with 1 cm), and a
     # scan registered wrongly in a shake is an outlier against the IMU. Rotation 0.1 deg: 0.2
@@ -331,7 +331,7 @@ class CheckpointConfig(_Section):
 
 
 class ImuConfig(_Section):
-    """The IMU (imu.csv beside the scans or a sensor_msgs/Imu topic; lidar_slam.io.inertial)."""
+    """The IMU (imu.csv beside the scans or a sensor_msgs/Imu topic; lidar_slam.io.imu_gnss)."""
 
     enabled: bool = True
     # The IMU's pose in the lidar frame: 6 numbers x, y, z (m), roll, pitch, yaw (deg; extrinsic

@@ -19,7 +19,7 @@ import numpy as np
 
 from lidar_slam.config import ImuConfig
 from lidar_slam.geometry import matrix_from_rotvec
-from lidar_slam.io.inertial import ImuSamples
+from lidar_slam.io.imu_gnss import ImuSamples
 
 GRAVITY_MPS2 = 9.81
 # Covariance of the integration of velocity into position (m^2/s^2 * s), gtsam's own knob for

@@ -47,7 +47,7 @@ import numpy as np
 
 from lidar_slam.geometry import rotvec_from_matrix
 from lidar_slam.imu import closest_rotation
-from lidar_slam.io.inertial import ImuSamples
+from lidar_slam.io.imu_gnss import ImuSamples
 
 log = logging.getLogger(__name__)
 

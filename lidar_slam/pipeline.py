@@ -2,7 +2,7 @@
 reader -> deskew -> odometry -> keyframe? -> (loop worker: scan-context query -> ICP verify)
 -> back-end (pose graph, bounded-window updates; full solve at the end) -> map / metrics.
 With an IMU, deskew follows the integrated IMU and odometry starts from its prediction
-(lidar_slam.frontend.inertial).
+(lidar_slam.frontend.imu_prediction).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ class RunResult:
     # and of the first reset of each episode
     failure_resets: list[int] = field(default_factory=list)
     failure_episodes: list[int] = field(default_factory=list)
-    # With IMU / GNSS in the final solve (lidar_slam.backend.inertial), both taking the frame of
+    # With IMU / GNSS in the final solve (backend.imu_gnss_solve), both taking the frame of
     # the output poses (poses_kitti.txt: frame 0 at its stamp is the identity): where it lies
     # on the Earth (GNSS; lidar_slam.geo.GeoReference), and the rotation from it to a
     # gravity-aligned z-up frame (the smallest one: no heading change), else None.
@@ -132,7 +132,7 @@ class Pipeline:
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
         self.inertial = None  # the IMU front-end (imu: ImuSamples on the scans' clock)
         if imu is not None and cfg.imu.enabled:
-            from lidar_slam.frontend.inertial import ImuFrontend
+            from lidar_slam.frontend.imu_prediction import ImuFrontend
 
             self.inertial = ImuFrontend(imu, cfg.imu)
         self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
@@ -291,7 +291,7 @@ class Pipeline:
     def finish(self, inertial=None) -> RunResult:
         """Wait for the loop worker, solve the full graph, and return the run's result. With
         an IMU or GNSS (inertial: lidar_slam.io.inertial_input.InertialInput), the final solve
-        includes them (lidar_slam.backend.inertial), with or without loops."""
+        includes them (lidar_slam.backend.imu_gnss_solve), with or without loops."""
         r = self.result
         o = self.odometry
         r.refined_scans = (o.n_refined, o.n_refine_refused, o.n_refine_unproven,
@@ -348,7 +348,7 @@ class Pipeline:
     def _solve_inertial(self, inertial) -> None:
         """The final solve again with the IMU and GNSS factors (when they can be used): the
         keyframe poses, covariances, geo-reference and gravity direction of the result."""
-        from lidar_slam.backend import inertial as solver
+        from lidar_slam.backend import imu_gnss_solve as solver
         from lidar_slam.geo import GeoReference
         from lidar_slam.imu import gravity_rotation
 

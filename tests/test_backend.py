@@ -315,13 +315,13 @@ def test_backend_benchmark_list_covers_every_file(posegraphs):
 
 def test_backend_only_gtsam_graph_imports_gtsam():
     # and three siblings for the IMU: preintegration (imu.py, shared with the front-end), the
-    # front-end's velocity / bias smoother (frontend/inertial.py) and the IMU / GNSS factors of
-    # the final solve (backend/inertial_graph.py)
+    # front-end's velocity / bias smoother (frontend/imu_prediction.py) and the IMU / GNSS
+    # factors of the final solve (backend/inertial_graph.py)
     importers = [p.relative_to(REPO).as_posix() for p in (REPO / "lidar_slam").rglob("*.py")
                  if re.search(r"^\s*(import gtsam|from gtsam)", p.read_text(), re.MULTILINE)]
     assert sorted(importers) == ["lidar_slam/backend/gtsam_graph.py",
                                  "lidar_slam/backend/inertial_graph.py",
-                                 "lidar_slam/frontend/inertial.py", "lidar_slam/imu.py"]
+                                 "lidar_slam/frontend/imu_prediction.py", "lidar_slam/imu.py"]
 
 
 def test_backend_incremental_agrees_with_full_lm_huber():

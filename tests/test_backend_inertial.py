@@ -1,6 +1,6 @@
-"""lidar_slam.backend.inertial: IMU and GNSS factors in the final solve, on synthetic drives (the
-simulator's smooth trajectory, IMU and GNSS, with an odometry that drifts), and in the
-pipeline's finish."""
+"""lidar_slam.backend.imu_gnss_solve: IMU and GNSS factors in the final solve, on synthetic
+drives (the simulator's smooth trajectory, IMU and GNSS, with an odometry that drifts), and in
+the pipeline's finish."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lidar_slam.backend import inertial as solver
+from lidar_slam.backend import imu_gnss_solve as solver
 from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.eval import metrics
 from lidar_slam.geometry import inverse, matrix_from_rotvec
-from lidar_slam.io.inertial import GnssFixes, ImuSamples
-from lidar_slam.sim.inertial import BMI088, ImuOptions, SmoothTrajectory, simulate_imu
+from lidar_slam.io.imu_gnss import GnssFixes, ImuSamples
+from lidar_slam.sim.imu_gnss import BMI088, ImuOptions, SmoothTrajectory, simulate_imu
 
 DATUM = (49.0110, 8.4240, 112.0)
 
@@ -172,11 +172,10 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
     import dataclasses
 
     from lidar_slam import pipeline
-    from lidar_slam.io.inertial_input import load_inertial
     from lidar_slam.io.sources import open_source
     from lidar_slam.run.outputs import write_run
     from lidar_slam.sim import SENSORS
-    from lidar_slam.sim.inertial import GnssOptions
+    from lidar_slam.sim.imu_gnss import GnssOptions
     from lidar_slam.sim.sequence import sequence_world, write_sequence
     from lidar_slam.sim.world import WorldParams, place_on_terrain
 
@@ -198,7 +197,7 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
                    np.eye(4), 0.0, imu=ImuOptions(), gnss=GnssOptions(jump_fraction=0.0,
                                                                        dropout=0.0))
     src = open_source(data)
-    inertial = load_inertial(data, src.kind, src.stamps, imu_enabled=True, gnss_enabled=True)
+    inertial = src.inertial(imu_enabled=True, gnss_enabled=True)
     cfg = SlamConfig().model_copy(update={"loop": SlamConfig().loop.model_copy(
         update={"enabled": False})})
     result = pipeline.run(src.scans(), cfg, inertial=inertial)
@@ -215,7 +214,7 @@ def test_a_run_without_loops_with_imu_and_gnss_is_gravity_aligned_and_geo_refere
     assert tilt_err < 1.7, (tilt_err, unaligned)
     # the map frame's origin (frame 0, as the outputs anchor it) lands where the lidar was
     from lidar_slam.geo import LocalEnu
-    from lidar_slam.sim.inertial import KARLSRUHE
+    from lidar_slam.sim.imu_gnss import KARLSRUHE
 
     origin = LocalEnu(*KARLSRUHE).from_wgs84(result.geo.map_to_wgs84(np.zeros((1, 3))))[0]
     assert np.linalg.norm(origin[:2] - T_world_seq[:2, 3]) < 2.0

@@ -129,7 +129,7 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     spec = next(r for r in b.BANK if r.name == "office-handheld-os1")
     import dataclasses
 
-    from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.imu_gnss import ImuOptions
     from lidar_slam.sim.motions import simulate_motion
 
     small = dataclasses.replace(SENSORS["os1-64"], n_azimuth=512)

@@ -157,7 +157,7 @@ def imu_sim(tmp_path_factory):
 
     from lidar_slam.config import load_config
     from lidar_slam.sim import load_kitti_truth, simulate_sequence
-    from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.imu_gnss import ImuOptions
 
     root = tmp_path_factory.mktemp("rko")
     cfg_file = root / "imu.yaml"
@@ -175,7 +175,7 @@ def test_rko_lio_reads_the_same_points_stamps_imu_and_extrinsic_as_lidar_slam(im
     from rko_lio.config import TimestampConfig
     from rko_lio.dataloaders.raw import RawDataLoader
 
-    from lidar_slam.io.inertial import read_imu_csv
+    from lidar_slam.io.imu_gnss import read_imu_csv
 
     bench = load_tool()
     data, cfg_file, T = imu_sim

@@ -448,7 +448,7 @@ def test_two_runs_with_an_imu_write_identical_files(tmp_path):
     import dataclasses
 
     from lidar_slam.sim import SENSORS
-    from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.imu_gnss import ImuOptions
     from lidar_slam.sim.motions import simulate_handheld
 
     walk = tmp_path / "walk"

@@ -1,10 +1,11 @@
 """Odometry edges weighed by their own data (lidar_slam.frontend.edge_information) and the
-odometry's variance checked against the IMU (lidar_slam.backend.inertial.odometry_variance)."""
+odometry's variance checked against the IMU
+(lidar_slam.backend.imu_gnss_solve.odometry_variance)."""
 
 import numpy as np
 
 from lidar_slam.backend.factors import BetweenFactor, with_rotation_floor
-from lidar_slam.backend.inertial import odometry_variance
+from lidar_slam.backend.imu_gnss_solve import odometry_variance
 from lidar_slam.config import OdometryInformationConfig
 from lidar_slam.frontend.edge_information import EdgeInformation
 from lidar_slam.geometry import make_pose

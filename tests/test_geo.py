@@ -50,7 +50,7 @@ def geo_run(tmp_path_factory) -> GeoRun:
     from lidar_slam.pipeline import run
     from lidar_slam.run.outputs import write_run
     from lidar_slam.sim import load_kitti_truth, simulate_sequence
-    from lidar_slam.sim.inertial import GnssOptions
+    from lidar_slam.sim.imu_gnss import GnssOptions
 
     kt = load_kitti_truth(shared_path("kitti_gt"), 7)
     root = tmp_path_factory.mktemp("geo")

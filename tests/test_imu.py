@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from lidar_slam.config import ImuConfig
 from lidar_slam.imu import ImuStream, combined_params, gravity_rotation
-from lidar_slam.io.inertial import ImuSamples
-from lidar_slam.sim.inertial import NOISELESS, ImuOptions, SmoothTrajectory, simulate_imu
+from lidar_slam.io.imu_gnss import ImuSamples
+from lidar_slam.sim.imu_gnss import NOISELESS, ImuOptions, SmoothTrajectory, simulate_imu
 
 
 def shaky_walk(seconds: float = 4.0) -> SmoothTrajectory:

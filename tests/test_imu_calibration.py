@@ -17,7 +17,7 @@ from lidar_slam.imu_calibration import (
     coarse_offset_s,
     estimate,
 )
-from lidar_slam.io.inertial import ImuSamples
+from lidar_slam.io.imu_gnss import ImuSamples
 
 RATE_HZ, SCAN_HZ, SPAN_S = 200.0, 10.0, 20.0
 
@@ -152,7 +152,7 @@ def walk(tmp_path_factory):
     import dataclasses
 
     from lidar_slam.sim import SENSORS
-    from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.imu_gnss import ImuOptions
     from lidar_slam.sim.motions import simulate_handheld
     from tools.imu_calibration_grid import make_case
 

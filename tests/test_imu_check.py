@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from lidar_slam.frontend.imu_check import MAX_MOUNT_DEG, ImuCheck
-from lidar_slam.frontend.inertial import _is_rigid
+from lidar_slam.frontend.imu_prediction import _is_rigid
 from lidar_slam.run.runner import run_sequence
 from lidar_slam.sim import SENSORS
-from lidar_slam.sim.inertial import ImuOptions
+from lidar_slam.sim.imu_gnss import ImuOptions
 from lidar_slam.sim.motions import simulate_handheld
 from tools.bad_imu import corrupt, make_case
 
@@ -195,7 +195,6 @@ def test_a_run_resumed_after_the_gyro_was_converted_ends_as_the_uninterrupted_ru
     conversion, every pose within 1e-6 m of the run never stopped."""
     from lidar_slam import pipeline
     from lidar_slam.config import load_config
-    from lidar_slam.io.inertial_input import load_inertial
     from lidar_slam.io.sources import open_source
     from lidar_slam.run import checkpoint
 
@@ -203,8 +202,7 @@ def test_a_run_resumed_after_the_gyro_was_converted_ends_as_the_uninterrupted_ru
     cfg = load_config(seq / "lidar_slam.yaml", {"loop": {"enabled": False},
                                                 "odometry": {"max_num_threads": 1}})
     src = open_source(seq)
-    samples = load_inertial(seq, src.kind, src.stamps, imu_enabled=True,
-                            gnss_enabled=False).imu
+    samples = src.inertial(imu_enabled=True, gnss_enabled=False).imu
 
     def process(pipe, start, count):
         for scan in src.scans(start, count):

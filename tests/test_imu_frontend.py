@@ -1,5 +1,5 @@
 """The IMU in the front-end: deskew along the integrated IMU and kiss-icp started from its
-prediction (lidar_slam.frontend.inertial), on short simulated hand-held walks."""
+prediction (lidar_slam.frontend.imu_prediction), on short simulated hand-held walks."""
 
 from __future__ import annotations
 
@@ -14,11 +14,10 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.eval.metrics import ate
 from lidar_slam.frontend.deskew import SweepMotion, deskew
 from lidar_slam.geometry import interpolate, make_pose, rotation_angle_deg
-from lidar_slam.io.inertial import ImuSamples
-from lidar_slam.io.inertial_input import load_inertial
+from lidar_slam.io.imu_gnss import ImuSamples
 from lidar_slam.io.sources import open_source
 from lidar_slam.sim import SENSORS, simulate_sequence
-from lidar_slam.sim.inertial import NOISELESS, ImuOptions
+from lidar_slam.sim.imu_gnss import NOISELESS, ImuOptions
 
 SENSOR = dataclasses.replace(SENSORS["vlp16"], n_azimuth=600)
 N_SCANS = 45
@@ -68,8 +67,7 @@ def walks(tmp_path_factory):
 def run(seq, cfg: SlamConfig, imu: bool = True, edit=None):
     """(poses at the stamps, ground truth, the IMU front-end or None) of a run over seq."""
     src = open_source(seq)
-    samples = load_inertial(seq, src.kind, src.stamps, imu_enabled=True,
-                            gnss_enabled=False).imu
+    samples = src.inertial(imu_enabled=True, gnss_enabled=False).imu
     if edit is not None:
         samples = edit(samples)
 
@@ -169,8 +167,7 @@ def test_a_run_with_an_imu_resumed_from_its_checkpoint_ends_as_the_uninterrupted
     seq, xyz_rpy = walks["rotated"]
     cfg = cfg_with(xyz_rpy)
     src = open_source(seq)
-    samples = load_inertial(seq, src.kind, src.stamps, imu_enabled=True,
-                            gnss_enabled=False).imu
+    samples = src.inertial(imu_enabled=True, gnss_enabled=False).imu
     uninterrupted, *_ = run(seq, cfg)
     out, stop = tmp_path / "run", 33
     checkpoint.start_run(out, checkpoint.describe_run(seq, 0, None, None, cfg))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lidar_slam.errors import InputError
-from lidar_slam.io.inertial import read_imu_csv
+from lidar_slam.io.imu_gnss import read_imu_csv
 
 HEADER = "stamp_s,wx,wy,wz,ax,ay,az\n"
 

@@ -19,8 +19,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from lidar_slam.config import load_config
 from lidar_slam.errors import ConfigError, InputError
-from lidar_slam.io.inertial import read_gnss_csv, read_imu_csv
-from lidar_slam.io.inertial_input import load_inertial
+from lidar_slam.io.imu_gnss import read_gnss_csv, read_imu_csv
+from lidar_slam.io.inertial_input import StreamsBesideScans
 from lidar_slam.io.rosbag import read_gnss_topic, read_imu_topic
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,6 +39,17 @@ def _gnss_rows(n: int = 10, t0: float = 0.0) -> np.ndarray:
     t = t0 + np.arange(n, dtype=float)
     return np.c_[t, 49.0 + 1e-5 * np.arange(n), 8.4 * np.ones(n), 115.0 * np.ones(n),
                  np.ones(n), 2 * np.ones(n)]
+
+
+class _Folder(StreamsBesideScans):
+    """The IMU / GNSS half of a folder input (FolderSource's base) over csv files alone."""
+
+    def __init__(self, path: Path, stamps: np.ndarray):
+        self.path, self.stamps = path, stamps
+
+
+def load_inertial(folder: Path, stamps: np.ndarray, **options):
+    return _Folder(folder, stamps).inertial(**options)
 
 
 def _write(path: Path, header: str, rows) -> Path:
@@ -139,8 +150,8 @@ def test_streams_on_another_clock_than_the_scans_are_refused_unless_offset(tmp_p
     _write(tmp_path / "imu.csv", IMU_HEADER, _imu_rows(t0=1.6e9).tolist())
     scans = np.arange(5) * 0.1
     with pytest.raises(InputError, match="do not overlap the scans' 0..0.4 s.*time_offset_s"):
-        load_inertial(tmp_path, "folder", scans, imu_enabled=True, gnss_enabled=True)
-    got = load_inertial(tmp_path, "folder", scans, imu_enabled=True, gnss_enabled=True,
+        load_inertial(tmp_path, scans, imu_enabled=True, gnss_enabled=True)
+    got = load_inertial(tmp_path, scans, imu_enabled=True, gnss_enabled=True,
                         imu_offset_s=-1.6e9)
     assert got.imu is not None and abs(got.imu.stamp_s[0]) < 1e-6
     assert got.summary["imu"]["time_offset_s"] == -1.6e9
@@ -149,7 +160,7 @@ def test_streams_on_another_clock_than_the_scans_are_refused_unless_offset(tmp_p
 
 def test_imu_covering_part_of_the_scans_warns(tmp_path, caplog):
     _write(tmp_path / "imu.csv", IMU_HEADER, _imu_rows(n=200).tolist())  # 0..0.995 s
-    load_inertial(tmp_path, "folder", np.arange(50) * 0.1, imu_enabled=True, gnss_enabled=False)
+    load_inertial(tmp_path, np.arange(50) * 0.1, imu_enabled=True, gnss_enabled=False)
     assert "cover only part of the scans' 0..4.9 s" in caplog.text
 
 
@@ -159,7 +170,7 @@ def test_the_summary_says_what_was_read_and_what_was_switched_off(tmp_path):
     rows[7][3] = np.nan
     _write(tmp_path / "scans" / "imu.csv", IMU_HEADER, rows.tolist())
     _write(tmp_path / "gnss.csv", GNSS_HEADER, _gnss_rows(3).tolist())
-    got = load_inertial(tmp_path, "folder", np.arange(21) * 0.1, imu_enabled=True,
+    got = load_inertial(tmp_path, np.arange(21) * 0.1, imu_enabled=True,
                         gnss_enabled=False)
     assert got.gnss is None
     assert got.summary["gnss"]["reason"] == "off (--no-gnss or gnss.enabled: false)"

@@ -112,3 +112,109 @@ def test_one_home_for_each_shared_helper():
     assert defining("def write_ply") == ["io/ply.py"]
     assert defining("def voxel_downsample") == ["frontend/downsample.py"]
     assert defining("import small_gicp") == ["registration.py"]
+
+
+# --- nothing outside io/ branches on the input's kind (issue 30, item 1) -----------------------
+
+def _input_kinds() -> set[str]:
+    """Every kind io/ gives a source: the str constants assigned to a `kind` or `KIND` (also in
+    a tuple assignment, `kind, topic = "rosbag", None`) anywhere in lidar_slam/io."""
+    kinds = set()
+    for f in (PKG / "io").rglob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if not isinstance(node, ast.Assign):
+                continue
+            values = node.value.elts if isinstance(node.value, ast.Tuple) else [node.value]
+            for target in node.targets:
+                names = target.elts if isinstance(target, ast.Tuple) else [target]
+                for name, value in zip(names, values):
+                    ident = name.id if isinstance(name, ast.Name) else \
+                        name.attr if isinstance(name, ast.Attribute) else None
+                    if ident in ("kind", "KIND") and isinstance(value, ast.Constant) \
+                            and isinstance(value.value, str):
+                        kinds.add(value.value)
+    return kinds
+
+
+def _is_kind(node: ast.AST) -> bool:
+    """`x.kind`, `x.input_kind`, `x["kind"]`, `x["input_kind"]`, or a name `kind`, `input_kind`."""
+    if isinstance(node, ast.Attribute):
+        return node.attr in ("kind", "input_kind")
+    if isinstance(node, ast.Subscript):
+        return isinstance(node.slice, ast.Constant) and node.slice.value in ("kind", "input_kind")
+    return isinstance(node, ast.Name) and node.id in ("kind", "input_kind")
+
+
+def _of_a_source(node: ast.AST) -> bool:
+    """`source.kind`, `src.kind`, `self.source.kind`...: the kind of an input, whatever it is
+    compared with."""
+    if not (isinstance(node, ast.Attribute) and node.attr == "kind"):
+        return False
+    owner = node.value
+    name = owner.id if isinstance(owner, ast.Name) else \
+        owner.attr if isinstance(owner, ast.Attribute) else ""
+    return "source" in name or name in ("src", "data", "dataset", "bag", "pcap")
+
+
+def _names_a_kind(node: ast.AST, kinds: set[str]) -> bool:
+    if isinstance(node, ast.Constant):
+        return node.value in kinds
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return any(_names_a_kind(e, kinds) for e in node.elts)
+    return False
+
+
+def _kind_branches(tree: ast.AST, kinds: set[str]) -> list[int]:
+    """Lines that branch on an input's kind: a comparison (==, !=, in, not in, ...) of a source's
+    kind, or of any kind with an input kind's name; a `match` on a kind; an isinstance check
+    against a source class (`...Source`). Reporting it (summary.json's input_kind, a message)
+    is not branching."""
+    lines = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            operands = [node.left, *node.comparators]
+            if any(_of_a_source(o) for o in operands) or (
+                    any(_is_kind(o) for o in operands)
+                    and any(_names_a_kind(o, kinds) for o in operands)):
+                lines.append(node.lineno)
+        elif isinstance(node, ast.Match) and _is_kind(node.subject):
+            lines.append(node.lineno)
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) \
+                and node.func.id == "isinstance" and len(node.args) == 2:
+            classes = node.args[1].elts if isinstance(node.args[1], ast.Tuple) else [node.args[1]]
+            if any(isinstance(c, (ast.Name, ast.Attribute)) and
+                   (c.id if isinstance(c, ast.Name) else c.attr).endswith("Source")
+                   for c in classes):
+                lines.append(node.lineno)
+    return lines
+
+
+def test_the_rule_sees_the_branches_it_forbids():
+    kinds = _input_kinds()
+    assert {"folder", "file", "kitti", "kitti_raw", "rosbag", "ouster_pcap", "velodyne_pcap",
+            "newer_college", "mulran", "nclt", "kitti360", "boreas"} <= kinds, kinds
+    branching = ['stamps = source.stamps if source.kind != "file" else None',
+                 'is_bag = kind == "rosbag"', 'if src.kind in ("mulran", "nclt"): pass',
+                 'ok = summary["input_kind"] not in {"kitti"}',
+                 'if isinstance(source, RosbagSource): pass',
+                 'match source.kind:\n    case "kitti": pass']
+    for code in branching:
+        assert _kind_branches(ast.parse(code), kinds) == [1], code
+    reporting = ['info = {"input_kind": source.kind}', 'msg = f"a {source.kind} input"',
+                 'if phase.kind == "walk": pass', 'if site.kind != "outdoor": pass']
+    for code in reporting:
+        assert _kind_branches(ast.parse(code), kinds) == [], code
+
+
+def test_nothing_outside_io_branches_on_the_input_kind():
+    """The source open_source returns owns every stream of its input (scans, stamps, IMU,
+    GNSS, ground truth), so a new input format is one module in io/ plus its tests."""
+    kinds = _input_kinds()
+    offenders = {}
+    for f in sorted(PKG.rglob("*.py")):
+        if f.relative_to(PKG).parts[0] == "io":
+            continue
+        lines = _kind_branches(ast.parse(f.read_text()), kinds)
+        if lines:
+            offenders[str(f.relative_to(PKG.parent))] = lines
+    assert offenders == {}, offenders

@@ -102,7 +102,7 @@ def _ply_columns(path: Path) -> dict[str, np.ndarray]:
 def merged(tmp_path_factory):
     """Two 12 s hand-held walks with an IMU through one indoor world, starting close together,
     the second the other way round; each run, then merged."""
-    from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.imu_gnss import ImuOptions
     from lidar_slam.sim.sessions import simulate_sessions
 
     root = tmp_path_factory.mktemp("merge")

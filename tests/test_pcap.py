@@ -91,7 +91,7 @@ def sim_ouster(tmp_path_factory) -> SimPcap:
     from pcap_writers import write_ouster_pcap
 
     from lidar_slam.io.trajectory import read_kitti_poses
-    from lidar_slam.sim.inertial import ImuOptions
+    from lidar_slam.sim.imu_gnss import ImuOptions
     from lidar_slam.sim.motions import simulate_handheld
 
     root = tmp_path_factory.mktemp("sim_ouster")

@@ -23,7 +23,7 @@ from lidar_slam.sim.handheld import (
     clearance_m,
     handheld_motion,
 )
-from lidar_slam.sim.inertial import NOISELESS, ImuOptions
+from lidar_slam.sim.imu_gnss import NOISELESS, ImuOptions
 from lidar_slam.sim.motions import simulate_handheld
 
 # Fewer columns than an OS1-64 (1024) keeps the scans cheap; the motion is the same.

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from lidar_slam.io.trajectory import camera_to_lidar_poses, read_kitti_calib_tr, read_kitti_poses
 from lidar_slam.sim import SENSORS, simulate_sequence
-from lidar_slam.sim.inertial import (
+from lidar_slam.sim.imu_gnss import (
     BMI088,
     NOISELESS,
     GnssOptions,

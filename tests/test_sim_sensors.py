@@ -14,7 +14,7 @@ from conftest import assert_one_line_error
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.config import load_config
-from lidar_slam.io.inertial import read_imu_csv
+from lidar_slam.io.imu_gnss import read_imu_csv
 from lidar_slam.io.sources import KittiSource
 from lidar_slam.sim import (
     ALBEDO,
@@ -30,7 +30,7 @@ from lidar_slam.sim import (
     simulate_scan,
     simulate_sequence,
 )
-from lidar_slam.sim.inertial import ImuOptions
+from lidar_slam.sim.imu_gnss import ImuOptions
 
 SMALL = dataclasses.replace(SENSORS["vlp16"], n_azimuth=360)
 

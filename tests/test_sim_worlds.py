@@ -14,7 +14,7 @@ from lidar_slam.sim import drone as drone_mod
 from lidar_slam.sim import legged as legged_mod
 from lidar_slam.sim.floors import OfficeLayout
 from lidar_slam.sim.handheld import CLEARANCE_M, build_site, clearance_m, handheld_motion
-from lidar_slam.sim.inertial import GRAVITY_MPS2, ImuOptions
+from lidar_slam.sim.imu_gnss import GRAVITY_MPS2, ImuOptions
 from lidar_slam.sim.motions import CORNER_M, MOTION_WORLDS, simulate_motion
 
 SMALL_OS1 = dataclasses.replace(SENSORS["os1-64"], n_azimuth=256)

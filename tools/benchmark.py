@@ -264,14 +264,12 @@ def write_rko_lio_input(seq: Sequence, dest: Path, lio: dict | None = None) -> s
     import yaml
 
     from lidar_slam.config import load_config
-    from lidar_slam.io.inertial_input import load_inertial
-
     cfg = load_config(seq.config)
     if not cfg.imu.enabled:
         return "no IMU (imu.enabled: false in the lidar-slam config)"
     src = open_source(seq.path)
-    imu = load_inertial(seq.path, src.kind, src.stamps, imu_enabled=True, gnss_enabled=False,
-                        imu_offset_s=cfg.imu.time_offset_s).imu
+    imu = src.inertial(imu_enabled=True, gnss_enabled=False,
+                       imu_offset_s=cfg.imu.time_offset_s).imu
     if imu is None:
         return "no IMU"
     from plyfile import PlyData, PlyElement  # rko_lio's own PLY reader

@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from lidar_slam.geometry import inverse, quat_from_matrix  # noqa: E402
 from lidar_slam.io.datasets import mulran, nclt, newer_college  # noqa: E402
 from lidar_slam.io.datasets.common import poses_at, rigid, rot_z, rpy_zyx  # noqa: E402
-from lidar_slam.io.inertial import read_gnss_csv, read_imu_csv  # noqa: E402
+from lidar_slam.io.imu_gnss import read_gnss_csv, read_imu_csv  # noqa: E402
 from lidar_slam.io.sources import KittiSource  # noqa: E402
 
 N_SCANS = 12

@@ -137,7 +137,7 @@ BREAKS = [
           " times_rel_ref, self.T_prev_curr, self.period_s)",
           ("tests/test_frontend.py::test_a_scan_is_deskewed_once_by_the_motion_it_was_taken"
            "_in",)),
-    Break("imu-mounting-ignored", "imu", "lidar_slam/frontend/inertial.py",
+    Break("imu-mounting-ignored", "imu", "lidar_slam/frontend/imu_prediction.py",
           "        self.T_lidar_imu = cfg.T_lidar_imu_matrix()",
           "        self.T_lidar_imu = np.eye(4)",
           ("tests/test_imu_frontend.py::test_a_rotated_and_offset_imu_gives_the_poses_of_an_imu"
@@ -154,7 +154,7 @@ BREAKS = [
           '    if sys.platform.startswith("linux"):\n        try:\n            libc',
           '    return\n    if sys.platform.startswith("linux"):\n        try:\n            libc',
           ("tests/test_signals.py::test_the_loop_worker_dies_with_a_killed_run",)),
-    Break("sim-imu-without-bias", "8", "lidar_slam/sim/inertial.py",
+    Break("sim-imu-without-bias", "8", "lidar_slam/sim/imu_gnss.py",
           "        return truth + bias + white, bias", "        return truth + white, bias",
           ("tests/test_sim_imu.py::test_simulate_imu_noise_has_the_bmi088_white_noise_and_a_slow"
            "_bias",)),

@@ -4,7 +4,7 @@ Usage: python tools/solve_replay.py capture --root /work/bank --out DIR [--only 
        python tools/solve_replay.py replay DIR [--set backend.KEY=VALUE ...] [--only NAME,...]
 
 capture runs lidar-slam (in this process, with each sequence's bank overlay: tools/bank.py)
-on every built bank sequence and pickles the arguments of lidar_slam.backend.inertial.solve
+on every built bank sequence and pickles the arguments of lidar_slam.backend.imu_gnss_solve.solve
 (config, keyframe poses, edges, trajectory, IMU, fixes, edge information) to DIR/<name>.pkl.
 replay re-runs only that solve on each capture, with config overrides, and prints per sequence
 the keyframe ATE (m, rigid alignment) of the pose graph it starts from and of the solve, the mean
@@ -36,12 +36,12 @@ from tools import bank, benchmark  # noqa: E402
 def capture(root: Path, out: Path, only: set[str]) -> None:
     import typer
 
-    from lidar_slam.backend import inertial
+    from lidar_slam.backend import imu_gnss_solve
     from lidar_slam.cli import app
 
     command = typer.main.get_command(app)
     out.mkdir(parents=True, exist_ok=True)
-    original = inertial.solve
+    original = imu_gnss_solve.solve
     for spec in bank.BANK:
         seq = root / spec.name
         if not seq.is_dir() or (only and spec.name not in only):
@@ -52,14 +52,14 @@ def capture(root: Path, out: Path, only: set[str]) -> None:
             _target.write_bytes(pickle.dumps((args, kwargs)))
             return original(*args, **kwargs)
 
-        inertial.solve = wrapped
+        imu_gnss_solve.solve = wrapped
         cfg = bank.lidar_slam_config(spec, seq, out / "configs" / f"{spec.name}.yaml")
         with tempfile.TemporaryDirectory() as run:
             try:
                 command(["run", str(seq), "--out", run, "--overwrite", "--config", str(cfg)],
                         standalone_mode=False)
             finally:
-                inertial.solve = original
+                imu_gnss_solve.solve = original
         print(f"{spec.name}: {'captured' if target.is_file() else 'no solve with the IMU'}",
               flush=True)
 
@@ -83,7 +83,7 @@ def _override(cfg, settings: list[str]):
 
 
 def replay(captures: Path, settings: list[str], root: Path, only: set[str]) -> None:
-    from lidar_slam.backend import inertial
+    from lidar_slam.backend import imu_gnss_solve
 
     rows = []
     for path in sorted(captures.glob("*.pkl")):
@@ -95,7 +95,7 @@ def replay(captures: Path, settings: list[str], root: Path, only: set[str]) -> N
         keys = sorted(T_world_kf)
         seq = benchmark.load_sequence(str(root / name), 0, None, {})
         gt = benchmark.truth_at(seq, tr.kf_stamps_s[keys])
-        result = inertial.solve(cfg, *args[1:], **kwargs)
+        result = imu_gnss_solve.solve(cfg, *args[1:], **kwargs)
         before = _ate(np.stack([T_world_kf[k] for k in keys]), gt)
         after = _ate(np.stack([result.kf_poses[k] for k in keys]), gt)
         factors = result.summary.get("imu", {}).get("odometry_variance_factor")

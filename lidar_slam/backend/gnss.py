@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_slam.geometry import interpolate, inverse, make_pose, yaw_matrix
-from lidar_slam.io.inertial import GnssFixes
+from lidar_slam.io.imu_gnss import GnssFixes
 
 # chi2inv(0.999, 3): a fix whose normalised squared residual is beyond this is left out (a good
 # fix is, 1 in 1000).

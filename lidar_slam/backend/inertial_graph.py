@@ -7,7 +7,7 @@ poses' marginal covariances.
 Everything here is in one frame S (gravity-aligned z up; ENU with GNSS) and the nodes are IMU
 frames: the preintegrated measurements then need no lever-arm correction (gtsam's body_P_sensor
 leaves out the angular acceleration term), and the caller moves lidar-frame edges and lever arms
-into the IMU frame (lidar_slam.backend.inertial).
+into the IMU frame (lidar_slam.backend.imu_gnss_solve).
 """
 
 from __future__ import annotations

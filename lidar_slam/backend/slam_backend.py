@@ -198,7 +198,7 @@ class Backend:
 
     def final_edges(self) -> list[BetweenFactor]:
         """The graph's edges as the final solve left them: odometry, and the loops it did not
-        reject (with their Huber kernel), for a solve with more factors (backend.inertial)."""
+        reject (with their Huber kernel), for a solve with more factors (backend.imu_gnss_solve)."""
         return [e for e in self.graph.edges
                 if not e.is_loop or self.loop_status.get((e.i, e.j)) != "rejected"]
 

@@ -13,9 +13,10 @@ deskew of every point is cheap (~2 ms), but the selection after it is not: selec
 scan in kiss-icp's C++ and deskewing the selection took the odometry from 64 to 41 ms/frame on
 sim 07 (tools/compare_deskew.py).
 
-With an IMU (lidar_slam.frontend.inertial) the motion within the sweep is not constant: it comes
-as a SweepMotion, the sensor's pose at knots through the sweep (the IMU sample times), and each
-point is moved along it instead (same reference instant, same points, still deskewed once).
+With an IMU (lidar_slam.frontend.imu_prediction) the motion within the sweep is not constant:
+it comes as a SweepMotion, the sensor's pose at knots through the sweep (the IMU sample times),
+and each point is moved along it instead (same reference instant, same points, still deskewed
+once).
 """
 
 from __future__ import annotations

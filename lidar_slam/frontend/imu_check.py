@@ -49,7 +49,7 @@ MOUNT_SCANS = 20  # turning intervals (about two axes or more) before the mounti
 MOUNT_MIN_SPREAD = 0.05  # second / first singular value of the rotation vectors' correlation
 MAX_MOUNT_DEG = 10.0  # best-matching rotation farther than this from the config's: IMU off
 # The front-end re-initialises the IMU whenever its prediction of a scan is more than 1 m or
-# 10 deg off the registration (frontend.inertial.MAX_DISAGREEMENT_*). Never on the 15 sequences
+# 10 deg off the registration (imu_prediction.MAX_DISAGREEMENT_*). Never on the 15 sequences
 # of the bank with their right calibration (docs/bank.md); 3 to 8 times on a 30 s walk with a
 # wrong mounting or a 50 ms clock offset. This many times: a persistent disagreement.
 MAX_DISAGREEMENTS = 3

@@ -5,10 +5,10 @@ in another unit is converted with one warning saying what was assumed, or refuse
 - Stamps: an IMU samples at 10 Hz .. 5 kHz, so the median spacing of the stamps tells s from
   ms, us and ns (the plausible rates of two units are 1000x apart and the window is 500x wide:
   at most one unit fits). Whether the converted stamps are on the scans' clock is checked
-  after (io.inertial.check_overlap).
+  after (io.imu_gnss.check_overlap).
 - Specific force: its median norm is ~9.81 m/s^2 on any recording not in free fall, ~1 in g
   (and then seldom far below 1: gravity dominates). Gravity removed (a median norm of 0..2
-  m/s^2 that drops to ~0 at every pause) or anything else is refused (io.inertial).
+  m/s^2 that drops to ~0 at every pause) or anything else is refused (io.imu_gnss).
 - The gyro's unit (rad/s or deg/s) is not told by its magnitude alone (a slow turn in deg/s
   looks like a fast one in rad/s): the front-end compares it with the lidar's own rotation
   (lidar_slam.frontend.imu_check).
@@ -37,7 +37,7 @@ def stamp_scale(stamps: np.ndarray, source: str | Path) -> float:
     steps = np.diff(np.asarray(stamps, dtype=np.float64))
     steps = steps[np.isfinite(steps) & (steps > 0)]
     if not len(steps):
-        return 1.0  # no two increasing stamps: io.inertial refuses the file
+        return 1.0  # no two increasing stamps: io.imu_gnss refuses the file
     spacing = float(np.median(steps))
     fits = [(scale, unit) for scale, unit in STAMP_UNITS
             if MIN_RATE_HZ <= 1.0 / (spacing * scale) <= MAX_RATE_HZ]
@@ -54,7 +54,7 @@ def stamp_scale(stamps: np.ndarray, source: str | Path) -> float:
 
 def accel_scale(accel: np.ndarray, source: str | Path) -> float:
     """m/s^2 per unit of the specific force: STANDARD_GRAVITY_MPS2 when its median norm is
-    ~1 (a file in g, converted with one warning), else 1 (io.inertial checks the range)."""
+    ~1 (a file in g, converted with one warning), else 1 (io.imu_gnss checks the range)."""
     norms = np.linalg.norm(np.asarray(accel, dtype=np.float64), axis=1)
     norms = norms[np.isfinite(norms)]
     if not len(norms):

@@ -1,5 +1,12 @@
-"""The IMU and GNSS of one input, from a folder's csv files or a bag's topics, checked against
-the scan stamps, with what summary.json says of them (issue 22, item 1)."""
+"""The IMU and GNSS half of every input (issue 22, item 1; issue 30, item 1): each source
+returned by io.sources.open_source hands over its own streams with `source.inertial(...)`,
+checked against its scan stamps, with what summary.json says of them. Where a source's streams
+come from is the source's business, in one of three bases here:
+
+- StreamsBesideScans: imu.csv / gnss.csv beside a folder's scans (or in its scans/ subfolder);
+- CarriedStreams: the streams a public dataset's layout or a sensor pcap carries (`Carried`);
+- a bag's sensor_msgs/Imu and NavSatFix topics (io.rosbag.source.RosbagSource).
+"""
 
 from __future__ import annotations
 
@@ -9,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.io.datasets.common import Carried
-from lidar_slam.io.inertial import (
+from lidar_slam.io.imu_gnss import (
     GNSS_FILE,
     IMU_FILE,
     GnssFixes,
@@ -36,78 +42,114 @@ class InertialInput:
     summary: dict
 
 
-def _folder_stream(data: Path, name: str, reader, what: str):
-    """The stream in `name` beside the scans of a folder input, or (None, why not)."""
-    path = find_beside(data, name) if data.is_dir() else None
-    if path is None:
-        return None, f"no {name} beside the scans"
-    return reader(path), None
+@dataclass(frozen=True)
+class Carried:
+    """The IMU and GNSS an input holds in the same files as its scans (a public dataset's
+    layout, a sensor pcap), on the scans' clock, with what its calibration says of the mounting:
+    T_lidar_imu (4x4, IMU-frame vectors into the lidar frame) or None when the input gives
+    none; `why_not` says why a stream is None (summary.json)."""
+
+    imu: ImuSamples | None = None
+    gnss: GnssFixes | None = None
+    T_lidar_imu: np.ndarray | None = None
+    why_not: tuple[tuple[str, str], ...] = ()
+
+    def reason(self, what: str) -> str:
+        return dict(self.why_not).get(what, f"the layout carries no {what}")
 
 
-def _carried_stream(carried: Carried, what: str, imu_mount_given: bool):
-    """A dataset's stream, or (None, why not): an IMU whose mounting neither the dataset nor the
-    config gives is not used (a wrong mounting makes the trajectory worse than none)."""
-    stream = carried.imu if what == "imu" else carried.gnss
-    if stream is None:
-        return None, carried.reason(what)
-    if what == "imu" and carried.T_lidar_imu is None and not imu_mount_given:
-        log.warning("%s", carried.reason("imu"))
-        return None, carried.reason("imu")
-    return stream, None
+Stream = ImuSamples | GnssFixes
 
 
-def load_inertial(data: Path, kind: str, scan_stamps: np.ndarray | None, *, imu_enabled: bool,
-                  gnss_enabled: bool, imu_offset_s: float | None = 0.0,
-                  gnss_offset_s: float = 0.0,
-                  imu_topic: str | None = None, gnss_topic: str | None = None,
-                  carried: Carried | None = None, imu_mount_given: bool = False
-                  ) -> InertialInput:
-    """Read the IMU and GNSS of an input: imu.csv / gnss.csv beside a folder's scans (or in its
-    scans/ subfolder), the sensor_msgs/Imu and NavSatFix topics of a bag (picked like the
-    PointCloud2 topic, or named), or the streams a public dataset's layout carries (`carried`;
-    its IMU only with a mounting, from the dataset or the config: imu_mount_given). scan_stamps
-    (s) are checked against the streams' stamps (see check_overlap); a bag topic picked without
-    being named that does not overlap them is not used (a warning, and the reason in the
-    summary) instead of stopping the run. imu_offset_s None: the IMU's offset is to be found
-    from the data; its stream comes back as read, to be placed by on_scan_clock."""
-    is_bag = kind == "rosbag"
-    for flag, value, enabled in (("--imu-topic", imu_topic, imu_enabled),
-                                 ("--gnss-topic", gnss_topic, gnss_enabled)):
-        if value is not None and not is_bag:
-            log.warning("%s %s ignored: %s is not a rosbag", flag, value, data)
-        elif value is not None and not enabled:
-            log.warning("%s %s ignored: switched off (--no-%s or its enabled: false)", flag,
-                        value, flag[2:-6])
-    topics = {"imu": imu_topic, "gnss": gnss_topic}
-    streams: dict[str, object] = {}
-    summary: dict[str, dict] = {}
-    for what, enabled, offset_s in (("imu", imu_enabled, imu_offset_s),
-                                    ("gnss", gnss_enabled, gnss_offset_s)):
-        if not enabled:
-            stream, why = None, f"off (--no-{what} or {what}.enabled: false)"
-        elif carried is not None:
-            stream, why = _carried_stream(carried, what, imu_mount_given)
-        elif is_bag:
-            from lidar_slam.io import rosbag  # rosbags only when reading a bag
+class ImuGnssStreams:
+    """What every source does with its IMU and GNSS: `inertial(...)` reads them (the subclass's
+    `own_stream` says from where), puts them on the scans' clock and checks them against the
+    scan stamps (`scan_clock`). `topics_apply`: --imu-topic / --gnss-topic name something in
+    this input (a bag); elsewhere they are ignored with a warning."""
 
-            reader = rosbag.read_imu_topic if what == "imu" else rosbag.read_gnss_topic
-            stream, why = reader(data, topics[what])
-        else:
-            name, reader = (IMU_FILE, read_imu_csv) if what == "imu" else (GNSS_FILE,
-                                                                             read_gnss_csv)
-            stream, why = _folder_stream(data, name, reader, what)
-        if stream is None:
-            summary[what] = {"used": False, "reason": why}
-            streams[what] = None
-            continue
-        if offset_s is None:  # to be found from the data (imu_calibration): placed later
-            summary[what] = {"used": True, "source": stream.source}
-            streams[what] = stream
-            continue
-        lenient = carried is not None or is_bag and topics[what] is None
-        streams[what], summary[what] = on_scan_clock(stream, what, offset_s, scan_stamps,
-                                                     lenient)
-    return InertialInput(streams["imu"], streams["gnss"], summary)
+    topics_apply = False
+    path: Path  # the input as given to open_source: csv files are found, warnings named, by it
+    # io.imu_calibration reads it: the IMU / GNSS / mounting of an input that carries them in
+    # the same files as its scans (Carried); None when they come from beside them or a bag
+    sensor_streams: Carried | None = None
+
+    @property
+    def scan_clock(self) -> np.ndarray | None:
+        """The scan stamps (s) the streams are checked and calibrated against; None when there
+        is nothing to check with (a single scan file)."""
+        return self.stamps
+
+    def own_stream(self, what: str, topic: str | None) -> tuple[Stream | None, str | None]:
+        """The input's "imu" or "gnss" stream as read, or (None, why not)."""
+        raise NotImplementedError
+
+    def lenient(self, what: str, topic: str | None) -> bool:
+        """Whether a stream that does not overlap the scans is left out (a warning) instead of
+        stopping the run: one the user did not name (see on_scan_clock)."""
+        return False
+
+    def inertial(self, *, imu_enabled: bool, gnss_enabled: bool,
+                 imu_offset_s: float | None = 0.0, gnss_offset_s: float = 0.0,
+                 imu_topic: str | None = None, gnss_topic: str | None = None) -> InertialInput:
+        """The input's IMU and GNSS (own_stream), checked against the scan stamps (see
+        check_overlap). imu_offset_s None: the IMU's offset is to be found from the data; its
+        stream comes back as read, to be placed by on_scan_clock."""
+        for flag, value, enabled in (("--imu-topic", imu_topic, imu_enabled),
+                                     ("--gnss-topic", gnss_topic, gnss_enabled)):
+            if value is not None and not self.topics_apply:
+                log.warning("%s %s ignored: %s is not a rosbag", flag, value, self.path)
+            elif value is not None and not enabled:
+                log.warning("%s %s ignored: switched off (--no-%s or its enabled: false)", flag,
+                            value, flag[2:-6])
+        topics = {"imu": imu_topic, "gnss": gnss_topic}
+        streams: dict[str, object] = {}
+        summary: dict[str, dict] = {}
+        for what, enabled, offset_s in (("imu", imu_enabled, imu_offset_s),
+                                        ("gnss", gnss_enabled, gnss_offset_s)):
+            if not enabled:
+                stream, why = None, f"off (--no-{what} or {what}.enabled: false)"
+            else:
+                stream, why = self.own_stream(what, topics[what])
+            if stream is None:
+                summary[what] = {"used": False, "reason": why}
+                streams[what] = None
+                continue
+            if offset_s is None:  # to be found from the data (imu_calibration): placed later
+                summary[what] = {"used": True, "source": stream.source}
+                streams[what] = stream
+                continue
+            streams[what], summary[what] = on_scan_clock(
+                stream, what, offset_s, self.scan_clock, self.lenient(what, topics[what]))
+        return InertialInput(streams["imu"], streams["gnss"], summary)
+
+
+class StreamsBesideScans(ImuGnssStreams):
+    """imu.csv / gnss.csv beside the scans of a folder input, or in its scans/ subfolder."""
+
+    def own_stream(self, what: str, topic: str | None) -> tuple[Stream | None, str | None]:
+        name, reader = (IMU_FILE, read_imu_csv) if what == "imu" else (GNSS_FILE, read_gnss_csv)
+        data = self.path
+        path = find_beside(data, name) if data.is_dir() else None
+        if path is None:
+            return None, f"no {name} beside the scans"
+        return reader(path), None
+
+
+class CarriedStreams(ImuGnssStreams):
+    """The streams an input carries with its scans (`sensor_streams`, a Carried): a dataset
+    layout's or a pcap's, already on the scans' clock, so one that misses the scans is left
+    out, not refused. An IMU whose mounting the input does not give goes on to the run, which
+    takes it from the config or finds it from the data (lidar_slam.imu_calibration)."""
+
+    sensor_streams: Carried
+
+    def own_stream(self, what: str, topic: str | None) -> tuple[Stream | None, str | None]:
+        carried = self.sensor_streams
+        stream = carried.imu if what == "imu" else carried.gnss
+        return (None, carried.reason(what)) if stream is None else (stream, None)
+
+    def lenient(self, what: str, topic: str | None) -> bool:
+        return True
 
 
 def on_scan_clock(stream, what: str, offset_s: float, scan_stamps: np.ndarray | None,

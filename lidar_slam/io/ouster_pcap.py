@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
-from lidar_slam.io.datasets.common import Carried
-from lidar_slam.io.inertial import imu_from_rows
+from lidar_slam.io.imu_gnss import imu_from_rows
+from lidar_slam.io.inertial_input import Carried, CarriedStreams
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ def _t_lidar_imu(info) -> np.ndarray:
     return T
 
 
-class OusterPcapSource:
+class OusterPcapSource(CarriedStreams):
     """The frames and IMU packets of an Ouster pcap (see the module docstring).
 
     Opening reads the file once (frame stamps and the IMU); `scans()` reads it again for the

@@ -1,7 +1,10 @@
-"""Scan sources: a folder of scans, a KITTI odometry sequence, or a rosbag; one `open_source`.
+"""Inputs: `open_source` picks the reader of a path (a folder of scans, KITTI, a rosbag, a pcap,
+a public dataset's layout); this module holds the folder and KITTI readers.
 
-Every source yields `Scan`s with 0-based `index` = position in the input, and exposes
-`ground_truth` as T_world_lidar (K, 4, 4) for all K input scans, or None.
+Every source yields `Scan`s with 0-based `index` = position in the input, exposes
+`ground_truth` as T_world_lidar (K, 4, 4) for all K input scans, or None, and hands over its
+own IMU and GNSS with `inertial(...)` (io.inertial_input), so nothing outside io/ needs to
+know which kind of input it reads.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from lidar_slam.errors import InputError
-from lidar_slam.io.datasets.common import Carried
+from lidar_slam.io.inertial_input import Carried, InertialInput, StreamsBesideScans
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.io.pointcloud import SCAN_SUFFIXES, CloudData, make_scan, read_bin, read_cloud
 from lidar_slam.io.trajectory import (
@@ -32,13 +35,19 @@ DEFAULT_PERIOD_S = 0.1
 
 
 class ScanSource(Protocol):
+    path: Path  # the input as given
     name: str
-    kind: str  # "folder", "file", "kitti", "kitti_raw", "rosbag" or a dataset (io.datasets)
+    # "folder", "file", "kitti", "kitti_raw", "rosbag", a pcap or a dataset (io.datasets): for
+    # summary.json (input_kind) and messages; the code outside io/ never branches on it
+    # (tests/test_layout.py)
+    kind: str
     topic: str | None  # the bag topic read, None for other inputs
     ground_truth: np.ndarray | None
     stamps: np.ndarray  # stamp (s) of every input scan, as Scan.stamp_s
-    # IMU / GNSS / T_lidar_imu read from the same file as the scans (sensor pcaps); None: found
-    # beside the scans or in the bag by io.inertial_input.load_inertial
+    # The stamps the IMU / GNSS are checked and calibrated against (None: a single scan file)
+    scan_clock: np.ndarray | None
+    # IMU / GNSS / T_lidar_imu read from the same files as the scans (datasets, sensor pcaps);
+    # None: beside the scans or in the bag
     sensor_streams: Carried | None
 
     @property
@@ -47,6 +56,11 @@ class ScanSource(Protocol):
     def __len__(self) -> int: ...
 
     def scans(self, start: int = 0, count: int | None = None) -> Iterator[Scan]: ...
+
+    def inertial(self, *, imu_enabled: bool, gnss_enabled: bool,
+                 imu_offset_s: float | None = 0.0, gnss_offset_s: float = 0.0,
+                 imu_topic: str | None = None, gnss_topic: str | None = None
+                 ) -> InertialInput: ...  # the input's IMU and GNSS (io.inertial_input)
 
 
 def natural_key(name: str) -> list:
@@ -83,7 +97,7 @@ def _stamp_ns(stamp_s: float, known: bool) -> int | None:
     return round(stamp_s * 1e9) if known else None
 
 
-class FolderSource:
+class FolderSource(StreamsBesideScans):
     """A folder of scan files (in the folder or in its scans/ subfolder), naturally sorted, or a
     single scan file.
 
@@ -92,10 +106,9 @@ class FolderSource:
     """
 
     topic = None
-    sensor_streams = None
 
     def __init__(self, root: Path):
-        self.root = root
+        self.root = self.path = root
         self.ground_truth = None
         if root.is_file():  # one scan
             self.kind, self.name, self.files = "file", root.stem, [root]
@@ -124,6 +137,11 @@ class FolderSource:
         """Nothing dropped or recovered: stamps that do not increase are refused, not dropped."""
         return {}
 
+    @property
+    def scan_clock(self) -> np.ndarray | None:
+        """The scan stamps, or None for one scan file (no clock to check the IMU against)."""
+        return None if self.kind == "file" else self.stamps
+
     def __len__(self) -> int:
         return len(self.files)
 
@@ -134,7 +152,7 @@ class FolderSource:
             yield make_scan(i, self.stamps[i], cloud, str(self.files[i]))
 
 
-class KittiSource:
+class KittiSource(StreamsBesideScans):
     """A KITTI odometry sequence: velodyne/*.bin, calib.txt (with Tr), times.txt, poses.
 
     Ground truth comes from poses.txt in the folder or <root>/poses/XX.txt for
@@ -143,10 +161,10 @@ class KittiSource:
     per-point times (s, relative to the scan stamp) for simulated sequences.
     """
 
-    kind, topic, sensor_streams = "kitti", None, None
+    kind, topic = "kitti", None
 
     def __init__(self, root: Path, vertical_correction: bool = False):
-        self.root = root
+        self.root = self.path = root
         self.name = root.name
         self.files = sorted((root / "velodyne").glob("*.bin"), key=lambda p: natural_key(p.name))
         if not self.files:
@@ -197,15 +215,16 @@ class KittiSource:
             yield make_scan(i, self.stamps[i], cloud, str(self.files[i]))
 
 
-class KittiRawSource:
+class KittiRawSource(StreamsBesideScans):
     """A KITTI raw drive: velodyne_points/data/*.bin with velodyne_points/timestamps.txt (the
     drive folder or its velodyne_points folder). No ground truth (the raw drives' OXTS poses are
-    not read)."""
+    not read). path: the input as given (the drive folder, or root itself)."""
 
-    kind, topic, sensor_streams = "kitti_raw", None, None
+    kind, topic = "kitti_raw", None
 
-    def __init__(self, root: Path, vertical_correction: bool = False):
+    def __init__(self, root: Path, vertical_correction: bool = False, path: Path | None = None):
         self.root = root
+        self.path = root if path is None else path
         self.name = root.parent.name if root.name == "velodyne_points" else root.name
         self.files = sorted((root / "data").glob("*.bin"), key=lambda p: natural_key(p.name))
         if not self.files:
@@ -284,6 +303,7 @@ def open_source(path: str | Path, topic: str | None = None, kitti_vertical_corre
 
         dataset = open_dataset(p)
         if dataset is not None:
+            dataset.path = p  # the layout's root may be above the folder given
             return dataset
     if p.is_file():
         if p.suffix.lower() in SCAN_SUFFIXES:
@@ -295,7 +315,7 @@ def open_source(path: str | Path, topic: str | None = None, kitti_vertical_corre
     for raw in (p / "velodyne_points", p):
         if (raw / "data").is_dir() and (raw.name == "velodyne_points"
                                         or (raw / "timestamps.txt").is_file()):
-            return KittiRawSource(raw, vertical_correction=kitti_vertical_correction)
+            return KittiRawSource(raw, vertical_correction=kitti_vertical_correction, path=p)
     return FolderSource(p)
 
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError
-from lidar_slam.io.datasets.common import Carried
-from lidar_slam.io.inertial import gnss_from_rows
+from lidar_slam.io.imu_gnss import gnss_from_rows
+from lidar_slam.io.inertial_input import Carried, CarriedStreams
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ def _packets(vd, path: Path) -> Iterator[tuple[float, bytes]]:
         yield from vd.util.iter_pcap(fh)
 
 
-class VelodynePcapSource:
+class VelodynePcapSource(CarriedStreams):
     """The sweeps and position packets of a Velodyne pcap (see the module docstring).
 
     Opening decodes the file once (sweep stamps, GNSS); `scans()` decodes it again for the points.

@@ -212,7 +212,7 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
 
 
 def write_gnss_fixes(path: Path, fixes: list) -> None:
-    """gnss_fixes.csv: per input fix (lidar_slam.backend.inertial.FixReport) its stamp, the
+    """gnss_fixes.csv: per input fix (lidar_slam.backend.imu_gnss_solve.FixReport) its stamp, the
     keyframe it was tied to (-1: none), its position in the run's ENU frame (m), its residual
     after the final solve (m) and normalised squared residual (chi-square, 3 dof), and whether
     it was used, rejected (a multipath jump) or unused, with why."""

@@ -147,27 +147,23 @@ def _failure(end: _LoopEnd, stop: StopSignals, out: Path, frames: int) -> RunFai
     return None
 
 
-def _load_inertial(data: Path, source, cfg, imu_topic: str | None, gnss_topic: str | None,
+def _load_inertial(source, cfg, imu_topic: str | None, gnss_topic: str | None,
                    start: int = 0, count: int | None = None):
-    """The IMU and GNSS beside the scans or in the bag (lidar_slam.io.inertial_input), checked
-    against the scan stamps and reported in summary.json: the IMU deskews and predicts in the
-    front-end (Pipeline(imu=)), both go into the back-end's final solve (Pipeline.finish). The
-    IMU's clock offset and mounting the config and the input do not give are found from the
-    data (lidar_slam.imu_calibration, over the run's first scans: start, count): returns (cfg
-    with the values used, the input)."""
+    """The input's own IMU and GNSS (source.inertial: beside the scans, in the bag, or in the
+    dataset's or pcap's files), checked against the scan stamps and reported in summary.json:
+    the IMU deskews and predicts in the front-end (Pipeline(imu=)), both go into the back-end's
+    final solve (Pipeline.finish). The IMU's clock offset and mounting the config and the input
+    do not give are found from the data (lidar_slam.imu_calibration, over the run's first
+    scans: start, count): returns (cfg with the values used, the input)."""
     from lidar_slam import imu_calibration as calib
-    from lidar_slam.io.inertial_input import load_inertial
 
-    stamps = source.stamps if source.kind != "file" else None
     offset_auto = calib.offset_is_auto(cfg, source)
     mount_auto = calib.mount_is_auto(cfg)
-    inertial = load_inertial(data, source.kind, stamps, imu_enabled=cfg.imu.enabled,
-                             gnss_enabled=cfg.gnss.enabled,
-                             imu_offset_s=None if offset_auto else cfg.imu.time_offset_s,
-                             gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
-                             gnss_topic=gnss_topic, carried=source.sensor_streams,
-                             imu_mount_given=True)  # given, the input's, or found (auto)
-    if stamps is None:  # a single file: nothing to calibrate with
+    inertial = source.inertial(imu_enabled=cfg.imu.enabled, gnss_enabled=cfg.gnss.enabled,
+                               imu_offset_s=None if offset_auto else cfg.imu.time_offset_s,
+                               gnss_offset_s=cfg.gnss.time_offset_s, imu_topic=imu_topic,
+                               gnss_topic=gnss_topic)
+    if source.scan_clock is None:  # a single file: nothing to calibrate with
         offset_auto = mount_auto = False
     return calib.resolve(cfg, source, inertial, offset_auto, mount_auto, start, count)
 
@@ -242,8 +238,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction, meta=meta)
     total = scan_range(data, start, n_scans, len(source))
     own_mounting = _mounting_from_input(cfg, source)
-    resolved, inertial = _load_inertial(data, source, own_mounting, imu_topic, gnss_topic,
-                                        start, total)
+    resolved, inertial = _load_inertial(source, own_mounting, imu_topic, gnss_topic, start,
+                                        total)
     if own_mounting is not cfg and inertial.imu is not None:
         inertial.summary["imu"]["T_lidar_imu_from"] = f"the input's own calibration ({source.kind})"
     cfg = resolved

@@ -21,7 +21,7 @@ Conventions (also written into every sequence's README):
   sensor's `sweep(frame, seed)` says which directions fire when), from the pose interpolated at
   that instant (slerp/lerp between the simulated poses, extrapolated past the last one), so
   scans carry true motion distortion. With an IMU or GNSS,
-  the poses between stamps come from inertial.SmoothTrajectory instead (a cubic spline and a
+  the poses between stamps come from imu_gnss.SmoothTrajectory instead (a cubic spline and a
   RotationSpline through the same poses), for the points and the IMU/GNSS alike. The head
   starts facing backwards (azimuth 180 deg) and turns clockwise seen from above, like a
   Velodyne.

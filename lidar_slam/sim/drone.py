@@ -7,7 +7,7 @@ while at each level; the yaw follows the path plus yaw spins (a full turn or a h
 acceleration the rotors must give, a - g plus a drag term against the velocity, so the frame
 banks into turns and pitches into accelerations and at cruise. It hovers at its start height
 first (at rest: the IMU's initial state is known). Sampled at KEY_RATE_HZ and splined by
-inertial.SmoothTrajectory, the truth for the points and the IMU alike.
+imu_gnss.SmoothTrajectory, the truth for the points and the IMU alike.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d
 
 from lidar_slam.sim.handheld import KEY_RATE_HZ, LoopPath, MotionStats, _smoothstep, motion_stats
-from lidar_slam.sim.inertial import GRAVITY_MPS2, SmoothTrajectory
+from lidar_slam.sim.imu_gnss import GRAVITY_MPS2, SmoothTrajectory
 
 MAX_RATE_DPS = 150.0
 MAX_ACCEL_MPS2 = 6.0  # kinematic: |d2p/dt2|, gravity not included

@@ -3,7 +3,7 @@ interior or a street/plaza world, with quick looks, wrist flicks and shakes.
 
 The motion is analytic (a periodic spline path walked at a varying speed, step bobbing and sway,
 the hand ahead of the body, smooth C2 bursts of rotation), sampled at KEY_RATE_HZ and splined
-by inertial.SmoothTrajectory: that spline is the truth, for the points, the IMU and the GNSS
+by imu_gnss.SmoothTrajectory: that spline is the truth, for the points, the IMU and the GNSS
 alike. Bursts that would push the realised body rate past MAX_RATE_DPS or the acceleration past
 MAX_ACCEL_MPS2 are slowed until they do not.
 """
@@ -22,7 +22,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.io.atomic import write_text_atomic
-from lidar_slam.sim.inertial import SmoothTrajectory
+from lidar_slam.sim.imu_gnss import SmoothTrajectory
 from lidar_slam.sim.sensor import LidarModel
 from lidar_slam.sim.world import World, WorldParams, build_world
 

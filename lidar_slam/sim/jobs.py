@@ -135,7 +135,7 @@ def simulate_handheld_one(job: HandheldJob, progress: bool = True) -> str:
 
 def _inertial(job: SimulateJob | HandheldJob):
     """The job's ImuOptions and GnssOptions (None for those it does not simulate)."""
-    from lidar_slam.sim.inertial import GnssOptions, ImuOptions
+    from lidar_slam.sim.imu_gnss import GnssOptions, ImuOptions
 
     imu = gnss = None
     if job.imu_rate_hz is not None:

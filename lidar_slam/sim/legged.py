@@ -5,7 +5,7 @@ corner to turn on the spot (70-100 deg/s), and now and then in the middle of a l
 stops abruptly (0.35-0.5 s from standing to walking speed). While its legs move (walking or
 turning) the trot shakes the body: a 2-3 Hz vertical bounce of 1.5-2.5 cm, a roll at half the
 step rate and a pitch at the step rate of 1.5-3 deg, with a stride-to-stride jitter. Sampled at
-KEY_RATE_HZ and splined by inertial.SmoothTrajectory, the truth for the points and the IMU alike.
+KEY_RATE_HZ and splined by imu_gnss.SmoothTrajectory, the truth for the points and the IMU alike.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.sim.handheld import KEY_RATE_HZ, LoopPath, MotionStats, _smoothstep, motion_stats
-from lidar_slam.sim.inertial import SmoothTrajectory
+from lidar_slam.sim.imu_gnss import SmoothTrajectory
 
 MAX_RATE_DPS = 120.0
 MAX_ACCEL_MPS2 = 15.0  # kinematic: |d2p/dt2|, gravity not included

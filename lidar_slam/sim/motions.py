@@ -25,7 +25,7 @@ from lidar_slam.sim.handheld import (
     handheld_motion,
     write_bursts,
 )
-from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
+from lidar_slam.sim.imu_gnss import GnssOptions, ImuOptions, SmoothTrajectory
 from lidar_slam.sim.sensor import LidarModel, get_sensor
 
 log = logging.getLogger(__name__)

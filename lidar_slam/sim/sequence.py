@@ -20,7 +20,7 @@ from lidar_slam.io.trajectory import (
     read_times,
     write_kitti_poses,
 )
-from lidar_slam.sim.inertial import (
+from lidar_slam.sim.imu_gnss import (
     GnssOptions,
     ImuOptions,
     SmoothTrajectory,

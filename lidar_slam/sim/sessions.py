@@ -40,7 +40,7 @@ from lidar_slam.sim.handheld import (
     clearance_m,
     handheld_motion,
 )
-from lidar_slam.sim.inertial import GnssOptions, ImuOptions, SmoothTrajectory
+from lidar_slam.sim.imu_gnss import GnssOptions, ImuOptions, SmoothTrajectory
 from lidar_slam.sim.sensor import LidarModel, get_sensor
 from lidar_slam.sim.world import CLASSES, World, _box, place_on_terrain
 

@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from lidar_slam.errors import InputError
 from lidar_slam.geometry import interpolate
-from lidar_slam.io.inertial import GnssFixes, ImuSamples
+from lidar_slam.io.inertial_input import Carried, CarriedStreams
 from lidar_slam.io.pointcloud import CloudData, make_scan
 from lidar_slam.types import Scan
 
@@ -21,21 +20,6 @@ log = logging.getLogger(__name__)
 
 # A ground-truth stamp within this of a scan stamp is that scan's pose (no interpolation).
 SAME_STAMP_S = 1e-6
-
-
-@dataclass(frozen=True)
-class Carried:
-    """The IMU and GNSS a dataset layout holds, on the scans' clock, with what its calibration
-    says of the mounting: T_lidar_imu (4x4, IMU-frame vectors into the lidar frame) or None when
-    the dataset publishes none; `why_not` says why a stream is None (summary.json)."""
-
-    imu: ImuSamples | None = None
-    gnss: GnssFixes | None = None
-    T_lidar_imu: np.ndarray | None = None
-    why_not: tuple[tuple[str, str], ...] = ()
-
-    def reason(self, what: str) -> str:
-        return dict(self.why_not).get(what, f"the layout carries no {what}")
 
 
 def require(path: Path, what: str) -> Path:
@@ -141,7 +125,7 @@ def load_rows(path: Path, columns: int, what: str, skip_header: bool = False,
     return rows
 
 
-class DatasetSource:
+class DatasetSource(CarriedStreams):
     """A public dataset's sequence: scans from stamped files (read by `read(path, stamp_s)`), the
     ground truth T_world_lidar at every scan stamp (NaN rows where it does not reach) or None,
     and the streams it carries (`carried`)."""
@@ -155,6 +139,7 @@ class DatasetSource:
         self._read = read
         self.ground_truth = ground_truth
         self.carried = carried or Carried()
+        self.path = files[0].parent  # open_source sets the folder given
 
     @property
     def sensor_streams(self) -> Carried:

@@ -41,7 +41,7 @@ from lidar_slam.io.datasets.common import (
     rigid,
     rpy_zyx,
 )
-from lidar_slam.io.inertial import gnss_from_rows, imu_from_rows
+from lidar_slam.io.imu_gnss import gnss_from_rows, imu_from_rows
 from lidar_slam.io.pointcloud import CloudData, read_bin
 
 KIND = "mulran"

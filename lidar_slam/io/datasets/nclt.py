@@ -42,7 +42,7 @@ from lidar_slam.io.datasets.common import (
     rpy_zyx,
     stamped_files,
 )
-from lidar_slam.io.inertial import gnss_from_rows, imu_from_rows
+from lidar_slam.io.imu_gnss import gnss_from_rows, imu_from_rows
 from lidar_slam.io.pointcloud import CloudData
 
 KIND = "nclt"

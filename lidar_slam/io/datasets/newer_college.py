@@ -41,7 +41,7 @@ from lidar_slam.io.datasets.common import (
     rot_z,
     stamped_files,
 )
-from lidar_slam.io.inertial import imu_from_rows
+from lidar_slam.io.imu_gnss import imu_from_rows
 from lidar_slam.io.pointcloud import read_cloud
 
 KIND = "newer_college"

@@ -62,7 +62,7 @@ from lidar_slam.frontend.imu_check import ImuCheck
 from lidar_slam.frontend.odometry import OdometryResult
 from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import GRAVITY_MPS2, ImuStream, combined_params, gravity_rotation
-from lidar_slam.io.inertial import GAP_PERIODS, ImuSamples
+from lidar_slam.io.imu_gnss import GAP_PERIODS, ImuSamples
 from lidar_slam.types import Scan
 
 log = logging.getLogger(__name__)

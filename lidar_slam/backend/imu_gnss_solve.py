@@ -37,7 +37,7 @@ from lidar_slam.imu import (
     gravity_rotation,
     predict_pose,
 )
-from lidar_slam.io.inertial import GnssFixes, ImuSamples
+from lidar_slam.io.imu_gnss import GnssFixes, ImuSamples
 
 log = logging.getLogger(__name__)
 
