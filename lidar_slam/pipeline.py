@@ -126,15 +126,19 @@ class Pipeline:
     """Calls the stages in flow order for one scan at a time; finish() ends the run."""
 
     def __init__(self, cfg: SlamConfig, run_dir: str | Path | None = None, viz=None,
-                 resume: bool = False, imu=None):
+                 resume: bool = False, inertial=None):
         self.cfg = cfg
         self.odometry = Odometry(cfg)
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
-        self.inertial = None  # the IMU front-end (imu: ImuSamples on the scans' clock)
-        if imu is not None and cfg.imu.enabled:
+        # The run's IMU / GNSS (io.inertial_input.InertialInput, on the scans' clock), handed
+        # over once: the IMU deskews and predicts in the front-end, both go into finish()'s
+        # final solve. finish() leaves it as the IMU check left it (summary.json's "imu").
+        self.input = inertial
+        self.inertial = None  # the IMU front-end
+        if inertial is not None and inertial.imu is not None and cfg.imu.enabled:
             from lidar_slam.frontend.imu_prediction import ImuFrontend
 
-            self.inertial = ImuFrontend(imu, cfg.imu)
+            self.inertial = ImuFrontend(inertial.imu, cfg.imu)
         self.keyframes: KeyframeSelector | None = None  # made by start(), at the first scan
         self.edge_information = (EdgeInformation(cfg.backend.odom_information,
                                                  cfg.keyframes.cloud_voxel_m)
@@ -288,10 +292,13 @@ class Pipeline:
         table = self.result.store.table()
         return {int(k): T for k, T in zip(table["id"], table["T"])}
 
-    def finish(self, inertial=None) -> RunResult:
+    def finish(self) -> RunResult:
         """Wait for the loop worker, solve the full graph, and return the run's result. With
-        an IMU or GNSS (inertial: lidar_slam.io.inertial_input.InertialInput), the final solve
-        includes them (lidar_slam.backend.imu_gnss_solve), with or without loops."""
+        an IMU or GNSS (the constructor's inertial, as the IMU check left it: self.input), the
+        final solve includes them (lidar_slam.backend.imu_gnss_solve), with or without loops."""
+        from lidar_slam.frontend.imu_check import trusted_input
+
+        self.input = inertial = trusted_input(self.input, self.inertial)
         r = self.result
         o = self.odometry
         r.refined_scans = (o.n_refined, o.n_refine_refused, o.n_refine_unproven,
@@ -394,15 +401,13 @@ def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = Non
     resume, signals, the frames so far kept on an error, the outputs) is
     lidar_slam.run.run_sequence. inertial: the IMU / GNSS (io.inertial_input.InertialInput):
     the IMU deskews and predicts in the front-end, both go into the final solve."""
-    from lidar_slam.frontend.imu_check import trusted_input
-
-    pipe = Pipeline(cfg, run_dir, imu=None if inertial is None else inertial.imu)
+    pipe = Pipeline(cfg, run_dir, inertial=inertial)
     try:
         for scan in scans:
             pipe.process(scan)
             if on_scan is not None:
                 on_scan(scan, pipe.result)
-        return pipe.finish(trusted_input(inertial, pipe.inertial))
+        return pipe.finish()
     finally:
         if pipe.loops is not None:
             pipe.loops.close()

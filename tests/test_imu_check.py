@@ -202,13 +202,13 @@ def test_a_run_resumed_after_the_gyro_was_converted_ends_as_the_uninterrupted_ru
     cfg = load_config(seq / "lidar_slam.yaml", {"loop": {"enabled": False},
                                                 "odometry": {"max_num_threads": 1}})
     src = open_source(seq)
-    samples = src.inertial(imu_enabled=True, gnss_enabled=False).imu
+    given = src.inertial(imu_enabled=True, gnss_enabled=False)
 
     def process(pipe, start, count):
         for scan in src.scans(start, count):
             pipe.process(scan)
 
-    whole = pipeline.Pipeline(cfg, None, imu=samples)
+    whole = pipeline.Pipeline(cfg, None, inertial=given)
     try:
         process(whole, 0, len(src))
         uninterrupted = np.array(whole.finish().odom_poses)
@@ -216,12 +216,12 @@ def test_a_run_resumed_after_the_gyro_was_converted_ends_as_the_uninterrupted_ru
         whole.close()
     out, stop = tmp_path / "run", 60
     checkpoint.start_run(out, checkpoint.describe_run(seq, 0, None, None, cfg))
-    first = pipeline.Pipeline(cfg, out, imu=samples)
+    first = pipeline.Pipeline(cfg, out, inertial=given)
     process(first, 0, stop)
     assert first.inertial.check.gyro_scale != 1.0
     checkpoint.save(out, first, first.loops_applied_upto)
     first.close()
-    resumed = pipeline.Pipeline(cfg, out, resume=True, imu=samples)
+    resumed = pipeline.Pipeline(cfg, out, resume=True, inertial=given)
     try:
         assert checkpoint.restore(out, resumed) == stop
         process(resumed, stop, len(src) - stop)

@@ -151,7 +151,7 @@ def _load_inertial(source, cfg, imu_topic: str | None, gnss_topic: str | None,
                    start: int = 0, count: int | None = None):
     """The input's own IMU and GNSS (source.inertial: beside the scans, in the bag, or in the
     dataset's or pcap's files), checked against the scan stamps and reported in summary.json:
-    the IMU deskews and predicts in the front-end (Pipeline(imu=)), both go into the back-end's
+    the IMU deskews and predicts in the front-end (Pipeline(inertial=)), both go into the back-end's
     final solve (Pipeline.finish). The IMU's clock offset and mounting the config and the input
     do not give are found from the data (lidar_slam.imu_calibration, over the run's first
     scans: start, count): returns (cfg with the values used, the input)."""
@@ -225,7 +225,6 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     Raises RunFailed when nothing was written."""
     from lidar_slam import __version__
     from lidar_slam.config import load_config
-    from lidar_slam.frontend.imu_check import trusted_input
     from lidar_slam.io.atomic import write_text_atomic
     from lidar_slam.io.sources import open_source, read_ahead
     from lidar_slam.pipeline import Pipeline
@@ -252,7 +251,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     t0 = time.perf_counter()
     stop = StopSignals()
     with stop:  # from here on, a signal stops the run after the scan in hand
-        pipe = Pipeline(cfg, out, visualizer, resume=resuming, imu=inertial.imu)
+        pipe = Pipeline(cfg, out, visualizer, resume=resuming, inertial=inertial)
         pipe.frames_total = total
         done = 0
         if resuming:
@@ -270,8 +269,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                 pipe.close()
                 discard_run(out, created)
                 raise _nothing_written(end, stop.received, out, data, frames, cfg)
-            inertial = trusted_input(inertial, pipe.inertial)  # as the IMU check left it
-            result = pipe.finish(inertial)
+            result = pipe.finish()
+            inertial = pipe.input  # as the IMU check left it
             status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
                       "frames_requested": total}
             if end.error:
