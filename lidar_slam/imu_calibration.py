@@ -34,6 +34,11 @@ within SECOND_SEARCH_S, until the offset moves less than SETTLED_S (at most GYRO
 lidar-only odometry lags a fast turn (its deskew assumes the last interval's motion), which put
 the offset 2 to 16 ms off on 30 s walks and cost one 27 % of ATE; aided, within 1 ms
 (docs/benchmarks/2026-12-04-imu-calibration.md, with the cost).
+
+The rotation found is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg, set
+here to REFINE_SIGMA_FACTOR x its sigma; backend.inertial_graph.mount_edge): the odometry's
+rotation errors leave the turn vectors' fit 0.2-0.4 deg off, a few tenths the final solve's
+IMU factors are sensitive to (docs/benchmarks/2026-12-04b-imu-calibration.md).
 """
 
 from __future__ import annotations
