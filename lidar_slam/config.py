@@ -343,6 +343,11 @@ class ImuConfig(_Section):
     # from the data. Not set: 0 for an input whose own streams share a clock (a dataset, a
     # pcap), else "auto".
     time_offset_s: float | Auto = 0.0
+    # The rotation of T_lidar_imu is refined in the back-end's final solve, with a prior of this
+    # sigma (deg, per axis) about it; None: used as given. lidar_slam.imu_calibration sets it when
+    # it found the rotation from the data (its few tenths of a degree cost the final solve up to
+    # 40 % of ATE: docs/benchmarks/2026-12-04b-imu-calibration.md).
+    T_lidar_imu_sigma_deg: Positive | None = None
     # Continuous-time noise of a BMI088-class MEMS unit (BST-BMI088-DS001): gyro 0.014
     # deg/s/sqrt(Hz) = 2.4e-4 rad/s/sqrt(Hz) (the datasheet's typical value as Bosch's forum
     # quotes it); accelerometer 175 ug/sqrt(Hz) = 1.7e-3 m/s^2/sqrt(Hz), UNVERIFIED (only

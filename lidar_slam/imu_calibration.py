@@ -34,6 +34,11 @@ within SECOND_SEARCH_S, until the offset moves less than SETTLED_S (at most GYRO
 lidar-only odometry lags a fast turn (its deskew assumes the last interval's motion), which put
 the offset 2 to 16 ms off on 30 s walks and cost one 27 % of ATE; aided, within 1 ms
 (docs/benchmarks/2026-12-04-imu-calibration.md, with the cost).
+
+The rotation found is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg, set
+here to REFINE_SIGMA_FACTOR x its sigma; backend.inertial_graph.mount_edge): the odometry's
+rotation errors leave the turn vectors' fit 0.2-0.4 deg off, a few tenths the final solve's
+IMU factors are sensitive to (docs/benchmarks/2026-12-04b-imu-calibration.md).
 """
 
 from __future__ import annotations
@@ -75,6 +80,11 @@ GYRO_PASSES = 3  # gyro-aided passes at most (calibrate), until the offset moves
 SETTLED_S = 0.001
 GYRO_KNOTS = 9  # knots of a sweep's gyro motion in that pass
 SECOND_SEARCH_S = 0.05  # the offset searched within this of the first pass's (s)
+# A rotation found here is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg),
+# with a prior of this x its sigma: the sigmas are honest to a factor of about two (the grid's
+# errors 0.23-0.37 deg for sigmas 0.15-0.39), and a prior too tight keeps the error
+# (docs/benchmarks/2026-12-04b-imu-calibration.md).
+REFINE_SIGMA_FACTOR = 2.0
 
 
 @dataclass(frozen=True)
@@ -477,8 +487,11 @@ def mount_is_auto(cfg) -> bool:
     return cfg.imu.T_lidar_imu == "auto" or "T_lidar_imu" not in cfg.imu.model_fields_set
 
 
-def _with_values(cfg, offset_s: float | None, R: np.ndarray | None):
-    """cfg with the offset and the rotation used (the effective config of the run folder)."""
+def _with_values(cfg, offset_s: float | None, R: np.ndarray | None,
+                 sigma_deg: float | None = None):
+    """cfg with the offset and the rotation used (the effective config of the run folder); the
+    rotation's sigma_deg (found from the data): refined in the final solve (imu.
+    T_lidar_imu_sigma_deg, REFINE_SIGMA_FACTOR x it)."""
     update = {}
     if offset_s is not None:
         update["time_offset_s"] = round(float(offset_s), 6) + 0.0
@@ -489,6 +502,8 @@ def _with_values(cfg, offset_s: float | None, R: np.ndarray | None):
             T = cfg.imu.T_lidar_imu_matrix()
         T[:3, :3] = R
         update["T_lidar_imu"] = [round(float(v), 9) + 0.0 for v in T.ravel()]
+        if sigma_deg is not None:
+            update["T_lidar_imu_sigma_deg"] = round(REFINE_SIGMA_FACTOR * sigma_deg, 4)
     if not update:
         return cfg
     return cfg.model_copy(update={"imu": cfg.imu.model_copy(update=update)})
@@ -533,7 +548,8 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
                                                "calibration": calibration}}
         return cfg, dataclasses.replace(inertial, imu=None, summary=summary)
     cfg = _with_values(cfg, est.time_offset_s if offset_auto else None,
-                       est.R_lidar_imu if mount_auto else None)
+                       est.R_lidar_imu if mount_auto else None,
+                       est.rotation_sigma_deg if mount_auto else None)
     if offset_auto:
         stream, imu_summary = on_scan_clock(imu, "imu", est.time_offset_s, stamps, lenient=True)
     else:  # on the scans' clock already
@@ -576,3 +592,4 @@ def _not_confident(est: Estimate | None, win: Window, offset_auto: bool, mount_a
                 f"{est.rotation_sigma_deg:.2g} deg (at most {MAX_ROTATION_SIGMA_DEG:g}; a turn "
                 f"about one axis leaves the mounting about it undetermined)")
     return None
+

@@ -233,6 +233,26 @@ def _inertial_odometry(cfg: SlamConfig, edges: list[BetweenFactor],
             for e in edges]
 
 
+def _mounted(edges: list[BetweenFactor], D: np.ndarray | None) -> list[BetweenFactor]:
+    """Edges between IMU frames as between the frames of the IMU turned by D (T_imu_imu'):
+    T_i_j -> D^-1 T_i_j D, what inertial_graph.mount_edge measures."""
+    if D is None:
+        return edges
+    D_inv = inverse(D)
+    return [dataclasses.replace(e, T_i_j=D_inv @ e.T_i_j @ D) for e in edges]
+
+
+def _refined(cfg: SlamConfig, C: np.ndarray) -> dict:
+    """summary.json's record of the mounting the final solve refined (T_lidar_imu 4x4 row by
+    row) and how far it turned from the one the run started with (deg)."""
+    from lidar_slam.geometry import rotvec_from_matrix
+
+    turn = rotvec_from_matrix(cfg.imu.T_lidar_imu_matrix()[:3, :3].T @ C[:3, :3])
+    return {"T_lidar_imu": [round(float(v), 9) + 0.0 for v in C.ravel()],
+            "prior_sigma_deg": cfg.imu.T_lidar_imu_sigma_deg,
+            "turned_deg": round(float(np.degrees(np.linalg.norm(turn))), 4)}
+
+
 CHI2_3_MEDIAN = 2.366  # median of the chi-square distribution with 3 degrees of freedom
 
 
@@ -334,6 +354,8 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         edges = _inertial_odometry(cfg, edges, odom_information or {})
     imu_edges = _edges_between_imus(edges, Cn)
     Cn_inv = {k: inverse(T) for k, T in Cn.items()}
+    sigma_deg = cfg.imu.T_lidar_imu_sigma_deg
+    mount_sigma = None if not links or sigma_deg is None else float(np.radians(sigma_deg))
 
     def run(used: np.ndarray) -> inertial_graph.InertialSolution:
         factors = [] if tied is None else [
@@ -342,12 +364,17 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
             for f in np.flatnonzero(used) for k in [int(tied.keyframe[f])]]
         return inertial_graph.solve(poses, velocities, imu_edges, links, factors,
                                     prior_mean, prior_cov, BIAS_SIGMA, GNSS_HUBER_K,
-                                    cfg.backend.max_iterations, RELATIVE_TOL)
+                                    cfg.backend.max_iterations, RELATIVE_TOL,
+                                    mount_sigma_rad=mount_sigma)
+
+    def lidar_poses(sol: inertial_graph.InertialSolution) -> dict[int, np.ndarray]:
+        D_inv = np.eye(4) if sol.mount_correction is None else inverse(sol.mount_correction)
+        return {k: T @ D_inv @ Cn_inv[k] for k, T in sol.poses.items()}
 
     used = alignment.inlier.copy() if tied is not None else np.zeros(0, dtype=bool)
     sol = run(used)
     if links:  # the odometry's own weights, checked against the IMU (see odometry_variance)
-        factors = odometry_variance(imu_edges, sol.poses)
+        factors = odometry_variance(_mounted(imu_edges, sol.mount_correction), sol.poses)
         summary["imu"]["odometry_variance_factor"] = [round(f, 3) for f in factors]
         if max(factors) > 1.0:
             imu_edges = _scaled_odometry(imu_edges, factors)
@@ -356,7 +383,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
             sol = run(used)
     d2 = residual = np.zeros(0)
     for round_ in range(GATE_ROUNDS + 1 if tied is not None else 0):
-        diff = tied.enu_m - tied.antenna({k: T @ Cn_inv[k] for k, T in sol.poses.items()})
+        diff = tied.enu_m - tied.antenna(lidar_poses(sol))
         residual, d2 = np.linalg.norm(diff, axis=1), gnss_align.normalised_d2(diff, tied.sigma_m)
         gate = d2 < gnss_align.CHI2_3_GATE
         if np.array_equal(gate, used) or round_ == GATE_ROUNDS:
@@ -364,7 +391,11 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         used, poses = gate, sol.poses  # solve again from here without the fixes gated out
         velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
         sol = run(used)
-    T_S_lidar = {k: T @ Cn_inv[k] for k, T in sol.poses.items()}
+    T_S_lidar = lidar_poses(sol)
+    if sol.mount_correction is not None:  # the nodes are the IMU turned by it
+        C = C @ sol.mount_correction
+        Cn = {k: T @ sol.mount_correction for k, T in Cn.items()}
+        summary["imu"]["T_lidar_imu_refined"] = _refined(cfg, C)
     T_S_world_out = T_S_lidar[keys[0]] @ inverse(T_world_kf[keys[0]])
     T_world_S = inverse(T_S_world_out)
     Ad = {k: inertial_graph.adjoint(T) for k, T in Cn.items()}

@@ -17,9 +17,11 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, V, X
+from gtsam.symbol_shorthand import B, R, V, X
 
 from lidar_slam.backend.factors import BetweenFactor
+
+MOUNT = R(0)  # the correction of R_lidar_imu, when the solve refines it (mount_sigma_rad)
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,9 @@ class InertialSolution:
     iterations: int
     seconds: float
     covariances: dict[int, np.ndarray] = field(default_factory=dict)
+    # T_imu_imu' (4x4, a rotation): the nodes are the frames of the IMU mounted at T_lidar_imu
+    # T_imu_imu' when the solve refined the mounting (mount_sigma_rad), else None
+    mount_correction: np.ndarray | None = None
 
 
 def _noise(information: np.ndarray, robust_k: float | None):
@@ -68,10 +73,12 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
           edges: list[BetweenFactor], links: list[ImuLink], gnss: list[GnssFactor],
           prior_pose: np.ndarray, prior_covariance: np.ndarray, bias_sigma: np.ndarray,
           gnss_huber_k: float, max_iterations: int, relative_error_tol: float,
-          covariances: bool = True) -> InertialSolution:
+          covariances: bool = True, mount_sigma_rad: float | None = None) -> InertialSolution:
     """LM from the initial poses (T_S_node) and velocities (keyframes with IMU states), biases
     zero; the first keyframe's pose has a prior (mean, 6x6 covariance in its frame) and the first
     bias of every chain of IMU links a zero-mean prior (bias_sigma, 6: accelerometer then gyro).
+    mount_sigma_rad: the IMU's mounting rotation is refined too (a rotation of the IMU frame
+    the edges were moved into, zero-mean prior of this sigma per axis; see mount_edge).
     """
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -85,7 +92,15 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
         key = (id(e.information), e.robust_k)
         if key not in noises:
             noises[key] = _noise(e.information, e.robust_k)
-        graph.add(gtsam.BetweenFactorPose3(X(e.i), X(e.j), gtsam.Pose3(e.T_i_j), noises[key]))
+        if mount_sigma_rad is None:
+            graph.add(gtsam.BetweenFactorPose3(X(e.i), X(e.j), gtsam.Pose3(e.T_i_j),
+                                               noises[key]))
+        else:
+            graph.add(mount_edge(e, noises[key]))
+    if mount_sigma_rad is not None:
+        values.insert(MOUNT, gtsam.Rot3())
+        graph.add(gtsam.PriorFactorRot3(MOUNT, gtsam.Rot3(),
+                                        gtsam.noiseModel.Isotropic.Sigma(3, mount_sigma_rad)))
     bias_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(bias_sigma, dtype=float))
     starts = {link.i for link in links} - {link.j for link in links}
     for k in sorted({link.i for link in links} | {link.j for link in links}):
@@ -114,10 +129,41 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
     out_poses = {k: np.asarray(result.atPose3(X(k)).matrix(), dtype=np.float64) for k in poses}
     with_imu = [k for k in velocities if values.exists(V(k))]
     cov = pose_covariances(graph, result, list(poses)) if covariances else {}
+    mount = None
+    if mount_sigma_rad is not None:
+        mount = np.eye(4)
+        mount[:3, :3] = result.atRot3(MOUNT).matrix()
     return InertialSolution(
         out_poses, {k: np.asarray(result.atVector(V(k))) for k in with_imu},
         {k: np.asarray(result.atConstantBias(B(k)).vector()) for k in with_imu}, initial_error,
-        float(graph.error(result)), int(optimizer.iterations()), time.perf_counter() - t0, cov)
+        float(graph.error(result)), int(optimizer.iterations()), time.perf_counter() - t0, cov,
+        mount)
+
+
+_SELECT_ROTATION = np.vstack([np.eye(3), np.zeros((3, 3))])  # d Pose3(R, 0) / d R (6x3)
+
+
+def mount_edge(e: BetweenFactor, noise) -> gtsam.CustomFactor:
+    """The edge e (T_i_j between IMU frames at the mounting assumed) between nodes whose IMU is
+    turned by D (the key MOUNT, T_imu_imu'): it measures D^-1 T_i_j D. Error as gtsam's
+    BetweenFactorPose3 (Logmap of measured^-1 X_i^-1 X_j), Jacobians by gtsam's own."""
+    Z = gtsam.Pose3(e.T_i_j)
+    ki, kj = X(e.i), X(e.j)
+
+    def error(this, values, H):
+        Hi, Hj, Ha, Hb, Hz, Hm1, Hm2, He1, He2, Hl = (np.zeros((6, 6), order="F")
+                                                       for _ in range(10))
+        hx = values.atPose3(ki).between(values.atPose3(kj), Hi, Hj)
+        D = gtsam.Pose3(values.atRot3(MOUNT), np.zeros(3))
+        M = D.inverse(Ha).compose(Z, Hb, Hz).compose(D, Hm1, Hm2)
+        err = gtsam.Pose3.Logmap(M.between(hx, He1, He2), Hl)
+        if H is not None:
+            H[0] = Hl @ He2 @ Hi
+            H[1] = Hl @ He2 @ Hj
+            H[2] = Hl @ He1 @ (Hm1 @ Hb @ Ha + Hm2) @ _SELECT_ROTATION
+        return err
+
+    return gtsam.CustomFactor(noise, [ki, kj, MOUNT], error)
 
 
 def pose_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
@@ -153,7 +199,7 @@ def _lu_covariances(gfg: gtsam.GaussianFactorGraph, keys: list[int]) -> dict[int
     offsets, n = {}, 0
     for key in sorted(gfg.keys()):  # sparseJacobian_'s column order: keys sorted, then b
         offsets[key] = n
-        n += 3 if gtsam.Symbol(key).chr() == ord("v") else 6  # pose and bias: 6
+        n += 3 if gtsam.Symbol(key).chr() in (ord("v"), ord("r")) else 6  # pose, bias: 6
     rows, cols, vals = gfg.sparseJacobian_()
     inside = cols <= n  # 1-based; the last column is b
     J = csc_matrix((vals[inside], (rows[inside].astype(int) - 1, cols[inside].astype(int) - 1)))
