@@ -11,13 +11,13 @@ from gtsam.symbol_shorthand import X
 from scipy.spatial.transform import Rotation
 
 from lidar_slam import imu_calibration as calib
-from lidar_slam.backend import inertial as solver
+from lidar_slam.backend import imu_gnss_solve as solver
 from lidar_slam.backend import inertial_graph
 from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.geometry import inverse, matrix_from_rotvec, rotvec_from_matrix
-from lidar_slam.io.inertial import ImuSamples
-from lidar_slam.sim.inertial import BMI088, ImuOptions, SmoothTrajectory, simulate_imu
+from lidar_slam.io.imu_gnss import ImuSamples
+from lidar_slam.sim.imu_gnss import BMI088, ImuOptions, SmoothTrajectory, simulate_imu
 
 
 def angle_deg(R: np.ndarray) -> float:
