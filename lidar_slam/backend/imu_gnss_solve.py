@@ -259,8 +259,9 @@ CHI2_3_MEDIAN = 2.366  # median of the chi-square distribution with 3 degrees of
 def odometry_variance(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
                       ) -> tuple[float, float]:
     """Variance factors (rotation, translation; at least 1) of the odometry edges at a solution
-    with the IMU: the median over edges of each block's squared residual normalised by that
-    block of the edge's own covariance, over chi-square(3)'s median. The IMU, far surer of
+    with the IMU: the mean over edges of each block's squared residual normalised by that
+    block of the edge's own covariance, over chi-square(3)'s mean, 3 (the median instead was
+    tried on the bank and not taken: docs/bank.md, Decisions). The IMU, far surer of
     rotation over a keyframe's fraction of a second than the gyro-free registration, shows
     the odometry's real rotation error in its residual; an edge information from the clouds
     alone sees the registration's noise but not the deskew or calibration errors of a shaken
