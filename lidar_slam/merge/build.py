@@ -12,7 +12,9 @@ order given, sessions/<i>/: poses_kitti.txt (every frame of the session in the m
 rows as its run's) and summary.json (kept or left out and why, loops).
 sessions/keyframes.csv says which session and keyframe each merged keyframe came from.
 changes.ply / changes.csv: what changed between sessions (lidar_slam.merge.changes), point by
-point (session, appeared or disappeared, object) and object by object.
+point (session, appeared or disappeared, object) and object by object. top_view.png: the map,
+the sessions' trajectories and the changed objects from above (lidar_slam.merge.top_view).
+Moving things (points seen in one scan only, lidar_slam.merge.moving) are left out.
 """
 
 from __future__ import annotations
@@ -39,13 +41,14 @@ from lidar_slam.merge.loops import (
     find_loops,
     guided_loops,
 )
+from lidar_slam.merge.moving import moving_points
 from lidar_slam.merge.session import Session, open_session
 from lidar_slam.merge.solve import Anchors, JointSolution, anchors, solve
 
 log = logging.getLogger(__name__)
 
 MERGE_OUTPUTS = ("keyframes", "sessions", "config.yaml", "summary.json", "poses_kitti.txt",
-                 "poses_tum.txt", "loops.csv", "changes.ply", "changes.csv")
+                 "poses_tum.txt", "loops.csv", "changes.ply", "changes.csv", "top_view.png")
 
 
 @dataclass
@@ -102,11 +105,13 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
                 anc.left_out[s.index] = "the joint solve rejected every loop linking it"
                 del anc.T_ref_session[s.index]
                 sol = solve(sessions, loops, anc, reference)
-        changes = detect_changes(sessions, sol.T_merged_kf) if detect else None
-        n = _write(out, sessions, loops, search, anc, sol, reference)
+        moving = moving_points(sessions, sol.T_merged_kf)
+        changes = detect_changes(sessions, sol.T_merged_kf, moving=moving) if detect else None
+        n = _write(out, sessions, loops, search, anc, sol, reference, moving)
         if changes is not None:
             _write_changes(out, changes)
             _add_changes_to_sessions(out, sessions, changes)
+        _write_top_view(out, sessions, sol, changes)
         summaries = [json.loads((out / "sessions" / str(s.index) / "summary.json").read_text())
                      for s in sessions]
     finally:
@@ -123,8 +128,10 @@ def _kept(loops: list[SessionLoop], sol: JointSolution) -> list[SessionLoop]:
 
 
 def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search: LoopSearch,
-           anc: Anchors, sol: JointSolution, reference: int) -> int:
-    """The merged map folder (see the module doc); returns its keyframe count."""
+           anc: Anchors, sol: JointSolution, reference: int,
+           moving: dict[tuple[int, int], np.ndarray]) -> int:
+    """The merged map folder (see the module doc), each keyframe's cloud without its moving
+    points (merge.moving); returns its keyframe count."""
     ref = sessions[reference]
     store = KeyframeStore(out / "keyframes")
     poses, grids, origin = [], [], []
@@ -136,7 +143,9 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
             grids.append(SessionGrids(s, ref.map.cfg).grids)  # the merged map's one shape
             for k in range(len(s)):
                 kf = s.map.keyframe(k)
-                store.add(int(s.map.frame_index[k]), T[k], kf.points, kf.intensity,
+                static = ~moving[(s.index, k)]
+                store.add(int(s.map.frame_index[k]), T[k], kf.points[static],
+                          None if kf.intensity is None else kf.intensity[static],
                           float(s.kf_stamps_s[k]))
                 poses.append(T[k])
                 origin.append((len(origin), s.index, k, int(s.map.frame_index[k])))
@@ -153,7 +162,8 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
         rows.writerows(origin)
     _write_loops(out / "loops.csv", loops, sol)
     for s in sessions:
-        _write_session(out / "sessions" / str(s.index), s, loops, anc, sol, reference)
+        _write_session(out / "sessions" / str(s.index), s, loops, anc, sol, reference,
+                       sum(int(m.sum()) for (i, _), m in moving.items() if i == s.index))
     frames = sol.T_merged_kf[reference]
     T_ref = ref.frames_in(frames)
     write_kitti_poses(out / "poses_kitti.txt", T_ref)
@@ -177,6 +187,22 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
             summary[key] = ref_summary[key]
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     return len(poses)
+
+
+def _write_top_view(out: Path, sessions: list[Session], sol: JointSolution,
+                    changes: ChangeCloud | None) -> None:
+    """top_view.png: the merged map, the kept sessions' trajectories, the changed objects."""
+    from lidar_slam.map.saved import open_map
+    from lidar_slam.merge.top_view import plot_merged_top_view
+
+    saved = open_map(out)
+    try:
+        points = saved.all_points_map()
+    finally:
+        saved.close()
+    plot_merged_top_view(out / "top_view.png",
+                         {s.index: s.frames_in(sol.T_merged_kf[s.index]) for s in sessions
+                          if s.index in sol.T_merged_kf}, points, changes)
 
 
 def _write_changes(out: Path, changes: ChangeCloud) -> None:
@@ -235,7 +261,7 @@ def _write_loops(path: Path, loops: list[SessionLoop], sol: JointSolution) -> No
 
 
 def _write_session(folder: Path, s: Session, loops: list[SessionLoop], anc: Anchors,
-                   sol: JointSolution, reference: int) -> None:
+                   sol: JointSolution, reference: int, n_moving: int) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     mine = [(lp, k) for lp, k in zip(loops, sol.kept) if s.index in (lp.a, lp.b)]
     with_other: dict[str, dict[str, int]] = {}
@@ -252,6 +278,7 @@ def _write_session(folder: Path, s: Session, loops: list[SessionLoop], anc: Anch
            "loops_with_sessions": with_other,
            "loops_within": len(s.loops)}
     if kept:
+        doc["moving_points_left_out"] = n_moving
         frames = s.frames_in(sol.T_merged_kf[s.index])
         write_kitti_poses(folder / "poses_kitti.txt", frames)
         doc["T_merged_session"] = np.round(sol.T_merged_kf[s.index][0]
