@@ -68,6 +68,15 @@ class _RangeImage:
         idx, r = self._index(points_kf)
         np.minimum.at(self.ranges, idx, r)
         self.nearest_m = float(r.min()) if len(r) else np.inf
+        # A bin at the edge of what the sensor covers (its vertical field of view, a window,
+        # the sky) may hold returns from only part of it, beyond what its other part would
+        # have hit: only bins whose neighbours above and below hold returns too are judged.
+        filled = np.isfinite(self.ranges).reshape(self.n_el, self.n_az)
+        inner = filled.copy()
+        inner[1:] &= filled[:-1]
+        inner[:-1] &= filled[1:]
+        inner[[0, -1]] = False
+        self.inner = inner.ravel()
 
     def _index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r = np.linalg.norm(points, axis=1)
@@ -81,8 +90,9 @@ class _RangeImage:
         """(saw through, saw) per point (N, 3) in this keyframe's frame."""
         idx, r = self._index(points)
         nearest = self.ranges[idx]
-        judged = np.isfinite(nearest) & (r > self.nearest_m + margin_m)
-        return judged & (nearest > r + margin_m), judged & (np.abs(nearest - r) <= margin_m)
+        judged = r > self.nearest_m + margin_m
+        return (judged & self.inner[idx] & (nearest > r + margin_m),
+                judged & (np.abs(nearest - r) <= margin_m))
 
 
 def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions,
@@ -162,7 +172,8 @@ def detect_changes(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
         big = np.flatnonzero(sizes >= opts.object_min_points)
         ids = np.full(len(sizes), -1)
         ids[big] = cluster.max() + 1 + np.arange(len(big))
-        cluster[sel] = np.where(labels >= 0, ids[np.maximum(labels, 0)], -1)
+        if len(ids):  # else every point is noise
+            cluster[sel] = np.where(labels >= 0, ids[np.maximum(labels, 0)], -1)
     log.info("changes: %d points appeared, %d disappeared, %d objects", int(appeared.sum()),
              int((~appeared).sum()), len(set(cluster[cluster >= 0].tolist())))
     return ChangeCloud(points, session, appeared, cluster)
