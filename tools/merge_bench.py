@@ -4,7 +4,8 @@
                                 [--duration-s 30] [--seed 1] [--changes 10] [--movers 2]
                                 [--imu] [--gnss] [--reference I] [--json FILE]
 
-Simulates DIR/sim (`simulate --sessions`), runs each session (`run`, DIR/runs/<i>) and merges
+Simulates DIR/sim (`simulate --sessions`), runs each session (`run`, DIR/runs/<i>, with the
+overlay `simulate` wrote beside it, lidar_slam.yaml, when there is one) and merges
 them (`merge`, DIR/merged), each step skipped when its folder is already there, then prints:
 
 - keyframe error: every merged keyframe's position against its truth (truth_world.txt at the
@@ -54,6 +55,13 @@ WRONG_DEG = 3.0
 CHANGE_M = 0.5
 MOVER_M = 0.3
 TRUTH = "truth_world.txt"
+
+
+def _overlay(seq: Path) -> tuple:
+    """--config SEQ/lidar_slam.yaml, the overlay simulate writes with an IMU or GNSS (the IMU's
+    mounting and clock as simulated), when there is one."""
+    overlay = seq / "lidar_slam.yaml"
+    return ("--config", overlay) if overlay.is_file() else ()
 
 
 def _cli(*args) -> None:
@@ -235,7 +243,7 @@ def main() -> None:
     for i in range(args.sessions):
         if not (runs / str(i) / "summary.json").is_file():
             _cli("run", sim / f"session_{i}", "--out", runs / str(i), "--overwrite",
-                 *(("--no-gnss",) if args.gnss and i > 0 else ()))
+                 *_overlay(sim / f"session_{i}"), *(("--no-gnss",) if args.gnss and i > 0 else ()))
     t1 = time.perf_counter()
     _cli("merge", *(runs / str(i) for i in range(args.sessions)), "--out", merged,
          "--overwrite", "--reference", args.reference)

@@ -24,6 +24,13 @@ from pathlib import Path
 import psutil
 
 
+def _overlay(seq: Path) -> tuple:
+    """--config SEQ/lidar_slam.yaml, the overlay simulate writes with an IMU or GNSS (the IMU's
+    mounting and clock as simulated), when there is one."""
+    overlay = seq / "lidar_slam.yaml"
+    return ("--config", overlay) if overlay.is_file() else ()
+
+
 def _cli(*args) -> None:
     proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", *map(str, args)],
                           capture_output=True, text=True)
@@ -71,7 +78,8 @@ def main() -> None:
              "--overwrite", *(("--imu",) if args.imu else ()))
     for i in range(n_max):
         if not (runs / str(i) / "summary.json").is_file():
-            _cli("run", sim / f"session_{i}", "--out", runs / str(i), "--overwrite")
+            _cli("run", sim / f"session_{i}", "--out", runs / str(i), "--overwrite",
+                 *_overlay(sim / f"session_{i}"))
     rows = []
     for n in sorted(args.sessions):
         out = args.root / f"merged_{n}"
