@@ -147,12 +147,14 @@ def simulate(
                                              (sensor or Sensor.os1_64).value, seed, changes,
                                              overwrite, rates, movers))
             return
+        if movers:
+            raise fail("--movers goes with --sessions")
         if motion is Motion.car:
             raise fail("--motion car goes with --sessions (one drive: give POSES)")
         _handheld(out, motion, world or default, duration_s or 60.0,
                   (sensor or Sensor.os1_64).value, seed, overwrite, rates, timing)
         return
-    if world is not None or duration_s is not None or sessions is not None:
+    if world is not None or duration_s is not None or sessions is not None or movers:
         raise fail("--world, --duration-s and --sessions go with --motion handheld (or legged, "
                    "drone, car)")
     if not poses:
