@@ -84,6 +84,55 @@ def test_changed_objects_are_in_the_world_of_their_session():
         assert hit_box == there, (session, hit)
 
 
+def test_a_mover_is_hit_where_it_is_at_each_rays_instant():
+    """A pedestrian box walking along the loop is met by a ray at the box's face where the box
+    is at the ray's time, with the face's normal; a ray beside it misses."""
+    from lidar_slam.sim.handheld import LoopPath
+    from lidar_slam.sim.movers import Mover, Movers
+
+    path = LoopPath.rectangle(20.0, 10.0, 0.6, False, 0.0)  # along +x from the origin
+    walker = Movers([Mover("clutter", 0.5, 0.5, 1.75, -1.0, 5.0, 0.0, path,
+                           lambda xy: np.zeros(len(xy)))])
+    origins = np.tile([0.0, 0.0, 0.8], (3, 1))
+    dirs = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    t, normal, cls = walker.cast(origins, dirs, np.array([0.0, 2.0, 0.0]))
+    centre = walker.movers[0].at(np.array([0.0, 2.0]))
+    assert np.allclose(centre[:, 1], 0.0, atol=1e-3) and centre[0, 0] > 4.0  # on the x axis
+    assert np.allclose(centre[:, 2], np.pi, atol=1e-3)  # facing the way it walks: -x
+    assert np.allclose(t[:2], centre[:, 0] - 0.25, atol=1e-3) and np.isinf(t[2])
+    assert abs(centre[0, 0] - centre[1, 0] - 2.0) < 0.01  # 1 m/s towards the origin
+    assert np.allclose(normal[:2], [[-1.0, 0.0, 0.0]] * 2, atol=1e-3)
+    assert (cls[:2] >= 0).all() and cls[2] == -1
+
+
+def test_merged_geo_follows_the_session_that_had_gnss():
+    """No GNSS in the reference, GNSS in session 1: the merged frame is put on the Earth by
+    session 1's geo-reference carried by where the merge put that session."""
+    from types import SimpleNamespace
+
+    from lidar_slam.geo import GeoReference, LocalEnu
+    from lidar_slam.merge.build import geo_disagreement_m, merged_geo
+
+    T_enu_run1 = np.eye(4)
+    T_enu_run1[:3, 3] = [100.0, -50.0, 2.0]
+    geo1 = GeoReference(LocalEnu(48.1, 11.5, 520.0), T_enu_run1)
+    kf_run1 = np.tile(np.eye(4), (3, 1, 1))
+    kf_run1[:, 0, 3] = [0.0, 1.0, 2.0]
+    T_merged_run1 = np.eye(4)
+    T_merged_run1[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    T_merged_run1[:3, 3] = [5.0, 0.0, 0.0]
+    sessions = [SimpleNamespace(index=0, map=SimpleNamespace(geo=None, T_map_kf=np.eye(4)[None])),
+                SimpleNamespace(index=1, map=SimpleNamespace(geo=geo1, T_map_kf=kf_run1))]
+    T_merged_kf = {0: np.eye(4)[None], 1: T_merged_run1 @ kf_run1}
+    geo, source = merged_geo(sessions, T_merged_kf, reference=0)
+    assert source == 1
+    # Session 1's keyframes land on the Earth where its own run put them.
+    assert geo_disagreement_m(sessions[1], geo, T_merged_kf[1]).max() < 1e-6
+    assert np.allclose(geo.map_to_enu(T_merged_kf[1][:, :3, 3]),
+                       geo1.map_to_enu(kf_run1[:, :3, 3]), atol=1e-9)
+    assert merged_geo(sessions[:1], {0: np.eye(4)[None]}, 0) == (None, None)
+
+
 def _ply_columns(path: Path) -> dict[str, np.ndarray]:
     """The vertex columns of a binary little-endian PLY (float / int properties)."""
     types = {"float": "<f4", "int": "<i4", "uint": "<u4"}
@@ -101,13 +150,14 @@ def _ply_columns(path: Path) -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def merged(tmp_path_factory):
     """Two 12 s hand-held walks with an IMU through one indoor world, starting close together,
-    the second the other way round; each run, then merged."""
+    the second the other way round, two pedestrians walking about in each; each run, then
+    merged."""
     from lidar_slam.sim.imu_gnss import ImuOptions
     from lidar_slam.sim.sessions import simulate_sessions
 
     root = tmp_path_factory.mktemp("merge")
     simulate_sessions(root / "sim", 2, "handheld", "indoor", 4, 12.0, n_changes=4,
-                      imu=ImuOptions(), spread=0.4)
+                      imu=ImuOptions(), spread=0.4, n_movers=2)
     runs = []
     for i in range(2):
         runs.append(root / f"run{i}")
@@ -147,6 +197,9 @@ def test_objects_changed_between_the_walks_are_found(merged):
     scores = evaluate(root / "sim", root / "map")
     assert scores["change_precision"] >= 0.75 and scores["change_recall"] >= 0.5, scores
     assert scores["wrong_loops"] == 0 and scores["overlap_linked_pct"] >= 90.0, scores
+    # The pedestrians: most of their points, in the runs' keyframes, are not in the map.
+    assert scores["mover_points_in_merged"] < 0.5 * scores["mover_points_in_runs"], scores
+    assert (root / "map" / "top_view.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     cols = _ply_columns(root / "map" / "changes.ply")
     assert set(cols) >= {"x", "y", "z", "session", "appeared", "object"}
     assert set(np.unique(cols["session"]).tolist()) <= {0, 1}
@@ -268,3 +321,6 @@ def test_the_ouster_set_cut_in_two_merges_into_the_single_runs_loop(tmp_path):
     err = np.linalg.norm(second[-5:, :3, 3] - full[-5:, :3, 3], axis=1)
     rot = [rotation_angle_deg(inverse(x) @ y) for x, y in zip(second[-5:], full[-5:])]
     assert err.max() < 0.05 and max(rot) < 0.5, (err, rot)
+    # One recording cut in two: nothing changed between the halves.
+    with open(tmp_path / "m" / "changes.csv") as fh:
+        assert list(csv.DictReader(fh)) == []

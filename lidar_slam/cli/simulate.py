@@ -113,6 +113,9 @@ def simulate(
         "(OUT/changes.json). car: --world outdoor only."),
     changes: int = typer.Option(10, "--changes", min=0, help="With --sessions: objects moved, "
                                 "added or removed between sessions."),
+    movers: int = typer.Option(0, "--movers", min=0, help="With --sessions: things moving "
+                               "during each session (pedestrians; a car for --motion car), "
+                               "their truth in session_<i>/movers.csv."),
 ) -> None:
     """Ray-cast a lidar along a real trajectory through a procedural street world, or along a
     handheld walk, a legged robot's trot or a drone's flight (--motion) through a built world.
@@ -142,14 +145,16 @@ def simulate(
             typer.echo(simulate_sessions_job(out, sessions, motion.value,
                                              (world or default).value, duration_s or 60.0,
                                              (sensor or Sensor.os1_64).value, seed, changes,
-                                             overwrite, rates))
+                                             overwrite, rates, movers))
             return
+        if movers:
+            raise fail("--movers goes with --sessions")
         if motion is Motion.car:
             raise fail("--motion car goes with --sessions (one drive: give POSES)")
         _handheld(out, motion, world or default, duration_s or 60.0,
                   (sensor or Sensor.os1_64).value, seed, overwrite, rates, timing)
         return
-    if world is not None or duration_s is not None or sessions is not None:
+    if world is not None or duration_s is not None or sessions is not None or movers:
         raise fail("--world, --duration-s and --sessions go with --motion handheld (or legged, "
                    "drone, car)")
     if not poses:

@@ -388,7 +388,8 @@ def write_plots(out_dir: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarra
 # ----------------------------------------------------------------------------------- plots
 
 
-def _save(fig, path: Path) -> None:
+def save_png(fig, path: Path) -> None:
+    """fig written to path as a PNG (120 dpi), atomically."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
 
@@ -423,7 +424,7 @@ def plot_top_view(path: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarray
     ax.set_ylabel(f"{'xyz'[j]} [m]")
     ax.legend(loc="best", fontsize=8)
     ax.set_title(f"top view (estimate started at the {gt_label}'s first pose)")
-    _save(fig, path)
+    save_png(fig, path)
 
 
 def plot_run_top_view(path: Path, poses: np.ndarray, map_ply: Path | None,
@@ -431,35 +432,14 @@ def plot_run_top_view(path: Path, poses: np.ndarray, map_ply: Path | None,
     """Top view (x-y of the map frame) of a run without ground truth: the map's point density
     (map_ply, read a chunk at a time) and the trajectory on it, as `eval`'s top view."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import LogNorm
     from matplotlib.figure import Figure
 
     xy = poses[:, :2, 3]
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    counts = None
-    if map_ply is not None and map_ply.is_file():
-        rows = _ply_rows(map_ply)
-        if len(rows):
-            lo = np.minimum(lo, rows[:, :2].min(axis=0))
-            hi = np.maximum(hi, rows[:, :2].max(axis=0))
-            side = float(max(hi - lo)) or 1.0
-            edges = [np.linspace(lo[k], lo[k] + side, bins + 1) for k in (0, 1)]
-            counts = np.zeros((bins, bins))
-            for start in range(0, len(rows), 1 << 20):  # bounded memory on a long run's map
-                chunk = np.asarray(rows[start:start + (1 << 20), :2], dtype=np.float64)
-                counts += np.histogram2d(chunk[:, 0], chunk[:, 1], bins=edges)[0]
+    rows = _ply_rows(map_ply) if map_ply is not None and map_ply.is_file() else None
     fig = Figure(figsize=(7, 7))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    if counts is not None and counts.any():
-        # From the median occupied cell up: floors and ceilings (few points per cell) light,
-        # walls and poles (many, stacked) dark.
-        floor = float(np.median(counts[counts > 0]))
-        ax.imshow(np.where(counts > 0, counts, np.nan).T, origin="lower", cmap="Greys",
-                  norm=LogNorm(vmin=floor, vmax=max(2.0 * floor, float(counts.max())),
-                               clip=True),
-                  extent=(edges[0][0], edges[0][-1], edges[1][0], edges[1][-1]),
-                  interpolation="nearest")
+    draw_map_density(ax, rows, xy, bins)
     ax.plot(xy[:, 0], xy[:, 1], "b-", lw=1.0, label=f"trajectory ({len(xy)} frames)")
     ax.plot(xy[0, 0], xy[0, 1], "ko", label="start")
     ax.set_aspect("equal", adjustable="datalim")
@@ -467,7 +447,33 @@ def plot_run_top_view(path: Path, poses: np.ndarray, map_ply: Path | None,
     ax.set_ylabel("y [m]")
     ax.legend(loc="best", fontsize=8)
     ax.set_title("top view: trajectory on the map (grey: map points per cell, log)")
-    _save(fig, path)
+    save_png(fig, path)
+
+
+def draw_map_density(ax, rows: np.ndarray | None, xy: np.ndarray, bins: int = 600) -> None:
+    """Grey, log scale: map points (rows (N, >=2), x-y in the map frame, read a chunk at a
+    time) per cell of a square grid over them and the trajectory points xy (M, 2)."""
+    from matplotlib.colors import LogNorm
+
+    if rows is None or len(rows) == 0:
+        return
+    lo = np.minimum(xy.min(axis=0), rows[:, :2].min(axis=0))
+    hi = np.maximum(xy.max(axis=0), rows[:, :2].max(axis=0))
+    side = float(max(hi - lo)) or 1.0
+    edges = [np.linspace(lo[k], lo[k] + side, bins + 1) for k in (0, 1)]
+    counts = np.zeros((bins, bins))
+    for start in range(0, len(rows), 1 << 20):  # bounded memory on a long run's map
+        chunk = np.asarray(rows[start:start + (1 << 20), :2], dtype=np.float64)
+        counts += np.histogram2d(chunk[:, 0], chunk[:, 1], bins=edges)[0]
+    if not counts.any():
+        return
+    # From the median occupied cell up: floors and ceilings (few points per cell) light,
+    # walls and poles (many, stacked) dark.
+    floor = float(np.median(counts[counts > 0]))
+    ax.imshow(np.where(counts > 0, counts, np.nan).T, origin="lower", cmap="Greys",
+              norm=LogNorm(vmin=floor, vmax=max(2.0 * floor, float(counts.max())), clip=True),
+              extent=(edges[0][0], edges[0][-1], edges[1][0], edges[1][-1]),
+              interpolation="nearest")
 
 
 def _ply_rows(path: Path) -> np.ndarray:
@@ -502,7 +508,7 @@ def plot_error_vs_distance(path: Path, series: metrics.ErrorVsDistance,
     ax.set_title("position error, both trajectories expressed in their first pose")
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    save_png(fig, path)
 
 
 def plot_drift_vs_length(path: Path, by_length) -> None:
@@ -525,7 +531,7 @@ def plot_drift_vs_length(path: Path, by_length) -> None:
         ax.grid(True, alpha=0.3)
     fig.suptitle("drift against segment length (KITTI devkit segments)")
     fig.tight_layout()
-    _save(fig, path)
+    save_png(fig, path)
 
 
 # ----------------------------------------------------------------------------------- table

@@ -11,8 +11,14 @@ the first solve put the sessions; kept by the final solve or not), and per sessi
 order given, sessions/<i>/: poses_kitti.txt (every frame of the session in the merged frame,
 rows as its run's) and summary.json (kept or left out and why, loops).
 sessions/keyframes.csv says which session and keyframe each merged keyframe came from.
+With GNSS in any kept session the merged frame is tied to the Earth: summary.json `geo` (as a
+run's) from the reference's run, else from the first session that had GNSS
+(`geo_from_session`); each GNSS session's summary says how far its own geo-reference puts its
+keyframes from where the merged one does (`geo_disagreement_m`).
 changes.ply / changes.csv: what changed between sessions (lidar_slam.merge.changes), point by
-point (session, appeared or disappeared, object) and object by object.
+point (session, appeared or disappeared, object) and object by object. top_view.png: the map,
+the sessions' trajectories and the changed objects from above (lidar_slam.merge.top_view).
+Moving things (points seen in one scan only, lidar_slam.merge.moving) are left out.
 """
 
 from __future__ import annotations
@@ -28,6 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from lidar_slam.errors import InputError, RunFailed
+from lidar_slam.geo import GeoReference
+from lidar_slam.geometry import inverse
 from lidar_slam.io.atomic import atomic_path, write_text_atomic
 from lidar_slam.io.trajectory import write_kitti_poses, write_tum
 from lidar_slam.map.keyframes import DESCRIPTORS, KeyframeStore
@@ -39,13 +47,14 @@ from lidar_slam.merge.loops import (
     find_loops,
     guided_loops,
 )
+from lidar_slam.merge.moving import moving_points
 from lidar_slam.merge.session import Session, open_session
 from lidar_slam.merge.solve import Anchors, JointSolution, anchors, solve
 
 log = logging.getLogger(__name__)
 
 MERGE_OUTPUTS = ("keyframes", "sessions", "config.yaml", "summary.json", "poses_kitti.txt",
-                 "poses_tum.txt", "loops.csv", "changes.ply", "changes.csv")
+                 "poses_tum.txt", "loops.csv", "changes.ply", "changes.csv", "top_view.png")
 
 
 @dataclass
@@ -102,11 +111,13 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
                 anc.left_out[s.index] = "the joint solve rejected every loop linking it"
                 del anc.T_ref_session[s.index]
                 sol = solve(sessions, loops, anc, reference)
-        changes = detect_changes(sessions, sol.T_merged_kf) if detect else None
-        n = _write(out, sessions, loops, search, anc, sol, reference)
+        moving = moving_points(sessions, sol.T_merged_kf)
+        changes = detect_changes(sessions, sol.T_merged_kf, moving=moving) if detect else None
+        n = _write(out, sessions, loops, search, anc, sol, reference, moving)
         if changes is not None:
             _write_changes(out, changes)
             _add_changes_to_sessions(out, sessions, changes)
+        _write_top_view(out, sessions, sol, changes)
         summaries = [json.loads((out / "sessions" / str(s.index) / "summary.json").read_text())
                      for s in sessions]
     finally:
@@ -123,8 +134,10 @@ def _kept(loops: list[SessionLoop], sol: JointSolution) -> list[SessionLoop]:
 
 
 def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search: LoopSearch,
-           anc: Anchors, sol: JointSolution, reference: int) -> int:
-    """The merged map folder (see the module doc); returns its keyframe count."""
+           anc: Anchors, sol: JointSolution, reference: int,
+           moving: dict[tuple[int, int], np.ndarray]) -> int:
+    """The merged map folder (see the module doc), each keyframe's cloud without its moving
+    points (merge.moving); returns its keyframe count."""
     ref = sessions[reference]
     store = KeyframeStore(out / "keyframes")
     poses, grids, origin = [], [], []
@@ -136,7 +149,9 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
             grids.append(SessionGrids(s, ref.map.cfg).grids)  # the merged map's one shape
             for k in range(len(s)):
                 kf = s.map.keyframe(k)
-                store.add(int(s.map.frame_index[k]), T[k], kf.points, kf.intensity,
+                static = ~moving[(s.index, k)]
+                store.add(int(s.map.frame_index[k]), T[k], kf.points[static],
+                          None if kf.intensity is None else kf.intensity[static],
                           float(s.kf_stamps_s[k]))
                 poses.append(T[k])
                 origin.append((len(origin), s.index, k, int(s.map.frame_index[k])))
@@ -152,8 +167,10 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
         rows.writerow(["keyframe", "session", "session_keyframe", "frame"])
         rows.writerows(origin)
     _write_loops(out / "loops.csv", loops, sol)
+    geo, _ = merged_geo(sessions, sol.T_merged_kf, reference)
     for s in sessions:
-        _write_session(out / "sessions" / str(s.index), s, loops, anc, sol, reference)
+        _write_session(out / "sessions" / str(s.index), s, loops, anc, sol, reference,
+                       sum(int(m.sum()) for (i, _), m in moving.items() if i == s.index), geo)
     frames = sol.T_merged_kf[reference]
     T_ref = ref.frames_in(frames)
     write_kitti_poses(out / "poses_kitti.txt", T_ref)
@@ -172,11 +189,53 @@ def _write(out: Path, sessions: list[Session], loops: list[SessionLoop], search:
                                           "kept_by_solve": sum(bool(k) for k in sol.kept)},
                "loops_within_sessions": {"given": sol.intra_total, "kept": sol.intra_kept},
                "solve_s": sol.seconds}
-    for key in ("auto_settings", "geo"):
-        if isinstance(ref_summary, dict) and key in ref_summary:
-            summary[key] = ref_summary[key]
+    if isinstance(ref_summary, dict) and "auto_settings" in ref_summary:
+        summary["auto_settings"] = ref_summary["auto_settings"]
+    geo, geo_from = merged_geo(sessions, sol.T_merged_kf, reference)
+    if geo is not None:
+        summary["geo"] = geo.to_dict()
+        summary["geo_from_session"] = geo_from
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     return len(poses)
+
+
+def merged_geo(sessions: list[Session], T_merged_kf: dict[int, np.ndarray], reference: int
+               ) -> tuple[GeoReference | None, int | None]:
+    """Where the merged frame lies on the Earth, and which session says so: the reference's
+    geo-reference when its run had GNSS, else the first kept session's that had (its T_enu_map
+    carried by T_merged_session); (None, None) when no kept session had GNSS."""
+    order = [reference] + [s.index for s in sessions if s.index != reference]
+    for i in order:
+        s = sessions[i]
+        if s.index not in T_merged_kf or s.map.geo is None:
+            continue
+        T_merged_run = T_merged_kf[i][0] @ inverse(s.map.T_map_kf[0])
+        return GeoReference(s.map.geo.enu, s.map.geo.T_enu_map @ inverse(T_merged_run)), i
+    return None, None
+
+
+def geo_disagreement_m(s: Session, geo: GeoReference, T_merged_kf: np.ndarray) -> np.ndarray:
+    """How far (m) the merged geo-reference puts each keyframe of a session with its own GNSS
+    from where that session's own geo-reference puts it (0 for the session it came from)."""
+    own = s.map.geo.map_to_wgs84(s.map.T_map_kf[:, :3, 3])
+    return np.linalg.norm(geo.enu.from_wgs84(own) - geo.map_to_enu(T_merged_kf[:, :3, 3]),
+                          axis=1)
+
+
+def _write_top_view(out: Path, sessions: list[Session], sol: JointSolution,
+                    changes: ChangeCloud | None) -> None:
+    """top_view.png: the merged map, the kept sessions' trajectories, the changed objects."""
+    from lidar_slam.map.saved import open_map
+    from lidar_slam.merge.top_view import plot_merged_top_view
+
+    saved = open_map(out)
+    try:
+        points = saved.all_points_map()
+    finally:
+        saved.close()
+    plot_merged_top_view(out / "top_view.png",
+                         {s.index: s.frames_in(sol.T_merged_kf[s.index]) for s in sessions
+                          if s.index in sol.T_merged_kf}, points, changes)
 
 
 def _write_changes(out: Path, changes: ChangeCloud) -> None:
@@ -235,7 +294,8 @@ def _write_loops(path: Path, loops: list[SessionLoop], sol: JointSolution) -> No
 
 
 def _write_session(folder: Path, s: Session, loops: list[SessionLoop], anc: Anchors,
-                   sol: JointSolution, reference: int) -> None:
+                   sol: JointSolution, reference: int, n_moving: int,
+                   geo: GeoReference | None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     mine = [(lp, k) for lp, k in zip(loops, sol.kept) if s.index in (lp.a, lp.b)]
     with_other: dict[str, dict[str, int]] = {}
@@ -252,6 +312,12 @@ def _write_session(folder: Path, s: Session, loops: list[SessionLoop], anc: Anch
            "loops_with_sessions": with_other,
            "loops_within": len(s.loops)}
     if kept:
+        doc["moving_points_left_out"] = n_moving
+        doc["gnss"] = s.map.geo is not None
+        if geo is not None and s.map.geo is not None:
+            d = geo_disagreement_m(s, geo, sol.T_merged_kf[s.index])
+            doc["geo_disagreement_m"] = {"mean": round(float(d.mean()), 4),
+                                         "max": round(float(d.max()), 4)}
         frames = s.frames_in(sol.T_merged_kf[s.index])
         write_kitti_poses(folder / "poses_kitti.txt", frames)
         doc["T_merged_session"] = np.round(sol.T_merged_kf[s.index][0]

@@ -56,7 +56,9 @@ class ChangeCloud:
 
 
 class _RangeImage:
-    """A keyframe's minimum range per (azimuth, elevation) bin, in its own frame."""
+    """A keyframe's minimum range per (azimuth, elevation) bin, in its own frame, and its
+    nearest return: a point nearer than that may have been cropped by the sensor or the
+    recording (a minimum range), so no return beyond it says nothing about it."""
 
     def __init__(self, points_kf: np.ndarray, bin_deg: float):
         self.bin = np.radians(bin_deg)
@@ -65,6 +67,16 @@ class _RangeImage:
         self.ranges = np.full(self.n_az * self.n_el, np.inf)
         idx, r = self._index(points_kf)
         np.minimum.at(self.ranges, idx, r)
+        self.nearest_m = float(r.min()) if len(r) else np.inf
+        # A bin at the edge of what the sensor covers (its vertical field of view, a window,
+        # the sky) may hold returns from only part of it, beyond what its other part would
+        # have hit: only bins whose neighbours above and below hold returns too are judged.
+        filled = np.isfinite(self.ranges).reshape(self.n_el, self.n_az)
+        inner = filled.copy()
+        inner[1:] &= filled[:-1]
+        inner[:-1] &= filled[1:]
+        inner[[0, -1]] = False
+        self.inner = inner.ravel()
 
     def _index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r = np.linalg.norm(points, axis=1)
@@ -78,17 +90,24 @@ class _RangeImage:
         """(saw through, saw) per point (N, 3) in this keyframe's frame."""
         idx, r = self._index(points)
         nearest = self.ranges[idx]
-        return np.isfinite(nearest) & (nearest > r + margin_m), np.abs(nearest - r) <= margin_m
+        judged = r > self.nearest_m + margin_m
+        return (judged & self.inner[idx] & (nearest > r + margin_m),
+                judged & (np.abs(nearest - r) <= margin_m))
 
 
-def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions) -> np.ndarray:
+def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions,
+                    moving: dict[tuple[int, int], np.ndarray] | None = None) -> np.ndarray:
     """The session's keyframe clouds in the merged frame, voxelised, without horizontal
     surfaces (a floor or ceiling seen at a grazing angle fills a range-image bin with returns
-    beyond itself: a change that is not)."""
+    beyond itself: a change that is not) and without moving points (merge.moving)."""
     from lidar_slam.o3d import o3d
 
-    parts = [transform_points(T_merged_kf[k], s.map.keyframe(k).points.astype(np.float64))
-             for k in range(len(s)) if s.map.counts[k]]
+    def static(k: int) -> np.ndarray:
+        points = s.map.keyframe(k).points.astype(np.float64)
+        return points if moving is None else points[~moving[(s.index, k)]]
+
+    parts = [transform_points(T_merged_kf[k], static(k)) for k in range(len(s))
+             if s.map.counts[k]]
     points = voxel_downsample(np.concatenate(parts), opts.voxel_m)[0]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=1.0, max_nn=30))
@@ -116,13 +135,15 @@ def _through(points: np.ndarray, other: Session, T_merged_kf: np.ndarray,
 
 
 def detect_changes(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
-                   opts: ChangeOptions | None = None) -> ChangeCloud:
-    """Appeared and disappeared points between every pair of kept sessions (module doc)."""
+                   opts: ChangeOptions | None = None,
+                   moving: dict[tuple[int, int], np.ndarray] | None = None) -> ChangeCloud:
+    """Appeared and disappeared points between every pair of kept sessions (module doc);
+    moving: (session, keyframe) -> the points to leave out (merge.moving)."""
     from lidar_slam.o3d import o3d
 
     opts = opts or ChangeOptions()
     kept = [s for s in sessions if s.index in T_merged_kf]
-    clouds = {s.index: _session_points(s, T_merged_kf[s.index], opts) for s in kept}
+    clouds = {s.index: _session_points(s, T_merged_kf[s.index], opts, moving) for s in kept}
     pts, sess, app = [], [], []
     for s in kept:
         changed = np.zeros(len(clouds[s.index]), dtype=bool)
@@ -151,7 +172,8 @@ def detect_changes(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
         big = np.flatnonzero(sizes >= opts.object_min_points)
         ids = np.full(len(sizes), -1)
         ids[big] = cluster.max() + 1 + np.arange(len(big))
-        cluster[sel] = np.where(labels >= 0, ids[np.maximum(labels, 0)], -1)
+        if len(ids):  # else every point is noise
+            cluster[sel] = np.where(labels >= 0, ids[np.maximum(labels, 0)], -1)
     log.info("changes: %d points appeared, %d disappeared, %d objects", int(appeared.sum()),
              int((~appeared).sum()), len(set(cluster[cluster >= 0].tolist())))
     return ChangeCloud(points, session, appeared, cluster)

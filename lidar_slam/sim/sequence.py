@@ -62,10 +62,10 @@ class SimScan:
 
 
 def simulate_scan(world: World, sensor: LidarModel, poses_at, stamp_s: float, rng,
-                  frame: int = 0, seed: int = 0) -> SimScan:
+                  frame: int = 0, seed: int = 0, movers=None) -> SimScan:
     """Cast one sweep starting at stamp_s (s); poses_at(times) -> T_world_lidar (N, 4, 4).
     frame is the sweep's index and seed the sequence's (a non-repetitive pattern moves on with
-    them); rng draws the noise."""
+    them); rng draws the noise; movers (sim.movers.Movers), things moving in the world."""
     sweep = sensor.sweep(frame, seed)
     tau = sweep.times_s
     T = poses_at(stamp_s + tau)  # (A, 4, 4) the sensor pose at each firing instant
@@ -76,6 +76,13 @@ def simulate_scan(world: World, sensor: LidarModel, poses_at, stamp_s: float, rn
     o_world = np.repeat(T[:, :3, 3], n_b, axis=0)
     hit = world.cast(o_world, d_world)
     r = hit["t_hit"].astype(np.float64)
+    if movers is not None:  # each ray meets a mover where it is at the ray's firing instant
+        t_m, n_m, c_m = movers.cast(o_world, d_world, np.repeat(stamp_s + tau, n_b))
+        closer = t_m < np.where(np.isfinite(r), r, np.inf)
+        r[closer] = t_m[closer]
+        hit = {"class": np.where(closer, c_m, hit["class"]),
+               "prim": np.where(closer, 0, hit["prim"]),
+               "normal": np.where(closer[:, None], n_m, hit["normal"])}
     cos_inc = np.abs(np.sum(hit["normal"] * d_world, axis=1))
     u = rng.random(len(r))
     noise = np.clip(rng.normal(0.0, sensor.range_noise_m, len(r)), -3 * sensor.range_noise_m,
@@ -286,7 +293,7 @@ def write_sequence(out_dir: str | Path, world: World, sensor: LidarModel, interp
                    world_s: float, on_scan: Callable[[int], None] | None = None,
                    imu: ImuOptions | None = None, gnss: GnssOptions | None = None,
                    first_index: int = 0, motion: str | None = None,
-                   stamp: str = "start") -> SimSummary:
+                   stamp: str = "start", movers=None) -> SimSummary:
     """Cast a sweep starting at each of stamps (s) in world, the sensor moving as
     interp(times) -> T_world_lidar (N, 4, 4), and write the KITTI-layout folder: scans, poses
     (T_world_lidar at the sweep starts, (n, 4, 4)) as poses.txt, times, calib, and with imu /
@@ -294,7 +301,7 @@ def write_sequence(out_dir: str | Path, world: World, sensor: LidarModel, interp
     overlay. With stamp "end", times.txt, poses.txt and the per-point times refer to each
     sweep's end instead (poses from interp). Scan k draws its noise from the seed and
     first_index + k (also its pattern's frame); motion, when given, is the README's account of
-    the poses."""
+    the poses; movers (sim.movers.Movers) move through the world during it."""
     if stamp not in STAMPS:
         raise ValueError(f"unknown stamp {stamp!r}; choose one of {STAMPS}")
     smooth = imu is not None or gnss is not None
@@ -307,7 +314,8 @@ def write_sequence(out_dir: str | Path, world: World, sensor: LidarModel, interp
     t1 = time.perf_counter()
     for k in range(n):
         rng = np.random.default_rng([seed, 1, first_index + k])
-        scan = simulate_scan(world, sensor, interp, float(stamps[k]), rng, first_index + k, seed)
+        scan = simulate_scan(world, sensor, interp, float(stamps[k]), rng, first_index + k, seed,
+                             movers)
         # Times first: a scan file never exists without its times (a killed simulate leaves
         # scans that a run reads correctly, never a half-written one).
         with atomic_path(out / "velodyne_times" / f"{k:06d}.bin", fsync=False) as tmp:

@@ -218,11 +218,13 @@ def simulate_sessions(out_dir: str | Path, n_sessions: int, motion: str, world_k
                       seed: int, duration_s: float, sensor: str | LidarModel = "os1-64",
                       n_changes: int = 10, imu: ImuOptions | None = None,
                       gnss: GnssOptions | None = None,
-                      on_scan: Callable[[int], None] | None = None, spread: float = 1.0
-                      ) -> SessionsSummary:
+                      on_scan: Callable[[int], None] | None = None, spread: float = 1.0,
+                      n_movers: int = 0) -> SessionsSummary:
     """n_sessions sequences of one seeded world (see the module doc) into out_dir; the
     sessions start round spread x the lap (1: evenly round it; less: closer together, for
-    short sessions that still overlap)."""
+    short sessions that still overlap); n_movers things move during each session
+    (sim.movers; their truth in session_<i>/movers.csv)."""
+    from lidar_slam.sim.movers import MOVERS_FILE, Movers, draw_movers, write_movers
     from lidar_slam.sim.sequence import write_sequence
 
     if motion not in SESSION_MOTIONS:
@@ -260,11 +262,15 @@ def simulate_sessions(out_dir: str | Path, n_sessions: int, motion: str, world_k
             raise ValueError(f"sessions {motion} {world_kind} seed {seed}, session {i}: the "
                              f"sensor comes within {gap.min():.2f} m of a surface")
         dest = out / f"session_{i}"
+        movers = draw_movers(path, site.ground, motion, n_movers, session_seed)
         summary = write_sequence(dest, site.world, sensor, traj, stamps, traj(stamps),
                                  session_seed, np.eye(4), 0.0, on_scan, imu, gnss,
                                  motion=text + "truth_world.txt: these poses in the world frame "
-                                 "common to every session.\n")
+                                 "common to every session.\n",
+                                 movers=Movers(movers) if movers else None)
         write_kitti_poses(dest / TRUTH_FILE, summary.poses_world_lidar)
+        if movers:
+            write_movers(dest / MOVERS_FILE, movers, stamps, sensor.period_s)
         n_scans.append(summary.n_scans)
     doc = {"seed": seed, "motion": motion, "world": world_kind, "sessions": n_sessions,
            "frame": "world (the frame of every session's truth_world.txt)",
@@ -289,7 +295,7 @@ def read_changes(path: str | Path) -> list[Change]:
 
 def simulate_sessions_job(out: Path, n_sessions: int, motion: str, world_kind: str,
                           duration_s: float, sensor: str, seed: int, n_changes: int,
-                          overwrite: bool, rates: tuple) -> str:
+                          overwrite: bool, rates: tuple, n_movers: int = 0) -> str:
     """`simulate --sessions`: the --out rule, a progress bar, simulate_sessions; the line to
     print. rates: (imu_rate_hz, gnss_rate_hz, imu_extrinsic, gnss_datum, gnss_lever_arm) as
     `simulate` parses them."""
@@ -308,7 +314,8 @@ def simulate_sessions_job(out: Path, n_sessions: int, motion: str, world_kind: s
     bar = make_progress(f"simulate {out.name}", total, unit="scans")
     try:
         summary = simulate_sessions(out, n_sessions, motion, world_kind, seed, duration_s,
-                                    sensor, n_changes, imu, gnss, on_scan=bar.tick)
+                                    sensor, n_changes, imu, gnss, on_scan=bar.tick,
+                                    n_movers=n_movers)
     except ValueError as exc:
         raise RunFailed(str(exc)) from None
     finally:
