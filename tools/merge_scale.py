@@ -23,19 +23,10 @@ from pathlib import Path
 
 import psutil
 
+if __package__ in (None, ""):  # run as a script: `tools` importable from the repository root
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-def _overlay(seq: Path) -> tuple:
-    """--config SEQ/lidar_slam.yaml, the overlay simulate writes with an IMU or GNSS (the IMU's
-    mounting and clock as simulated), when there is one."""
-    overlay = seq / "lidar_slam.yaml"
-    return ("--config", overlay) if overlay.is_file() else ()
-
-
-def _cli(*args) -> None:
-    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", *map(str, args)],
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"lidar-slam {' '.join(map(str, args))} failed: {proc.stderr[-2000:]}")
+from tools.merge_bench import _cli, _overlay  # noqa: E402
 
 
 def measured(args: list[str]) -> tuple[float, float]:
