@@ -93,11 +93,11 @@ class OdometryConfig(_Section):
     # fall by more than refine_evidence_z standard errors of their mean change (a one-sided
     # paired test); else kiss-icp's pose stands. Checked first on one Gauss-Newton step fitted
     # on the held-out points themselves: when even that is not significant, the ICP is skipped.
-    # Off by default: on 7 sequences it tied every slow scan refined on the median (odometry
-    # and final ATE 1.00x) and lost the worst row (final ATE 1.64x, a lidar-only walk); most of
-    # its refusals were of refinements that helped against the truth
-    # (docs/benchmarks/2026-12-03-refine-proof.md).
-    refine_evidence: bool = False
+    # "with_imu" (the default): on when the run's IMU is used, off lidar only (every slow scan
+    # refined). Decided on the bank (docs/bank.md, Decisions, 2026-12-04): with the IMU it
+    # halved the hand-held walks' ATE (median 0.033 -> 0.034 m over the 15 rows, worst 0.123 ->
+    # 0.103 m), lidar only it lost the median (0.120 -> 0.139 m) and the loop precision.
+    refine_evidence: bool | Literal["with_imu"] = "with_imu"
     refine_evidence_z: Positive = 2.0
     # Failure (lidar_slam.frontend.failure): failure_scans registered scans in a row with under
     # failure_min_fitness of their points within failure_inlier_m of the last keyframes' clouds

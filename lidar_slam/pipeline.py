@@ -128,14 +128,15 @@ class Pipeline:
     def __init__(self, cfg: SlamConfig, run_dir: str | Path | None = None, viz=None,
                  resume: bool = False, inertial=None):
         self.cfg = cfg
-        self.odometry = Odometry(cfg)
+        use_imu = inertial is not None and inertial.imu is not None and cfg.imu.enabled
+        self.odometry = Odometry(cfg, imu=use_imu)
         self.deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
         # The run's IMU / GNSS (io.inertial_input.InertialInput, on the scans' clock), handed
         # over once: the IMU deskews and predicts in the front-end, both go into finish()'s
         # final solve. finish() leaves it as the IMU check left it (summary.json's "imu").
         self.input = inertial
         self.inertial = None  # the IMU front-end
-        if inertial is not None and inertial.imu is not None and cfg.imu.enabled:
+        if use_imu:
             from lidar_slam.frontend.imu_prediction import ImuFrontend
 
             self.inertial = ImuFrontend(inertial.imu, cfg.imu)

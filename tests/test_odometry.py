@@ -197,7 +197,7 @@ def _refined(target: np.ndarray, scan: np.ndarray, T_kiss: np.ndarray) -> tuple[
     odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
                                                        "refine_evidence": True}}))
     odo.add_anchor(np.eye(4), target)
-    return odo, odo._refine(scan, T_kiss)
+    return odo, odo._refine(scan, T_kiss, evidence=True)
 
 
 def test_slow_scan_refinement_refused_when_its_target_pulls_it_off():

@@ -165,9 +165,12 @@ def plane_evidence(target: PlaneTarget, held: np.ndarray, T_kiss: np.ndarray,
 class Odometry:
     """kiss-icp scan-to-map registration; poses are T_world_scan with world = first scan."""
 
-    def __init__(self, cfg: SlamConfig):
+    def __init__(self, cfg: SlamConfig, imu: bool = False):
         o = cfg.odometry
         self.cfg = cfg
+        # imu: the run's IMU predicts the scans (odometry.refine_evidence "with_imu": the
+        # evidence is asked on every scan the IMU predicted, not after the IMU check's "off")
+        self.imu = imu
         self.voxel_size_m = cfg.voxel_size_m()
         self.max_range_m = cfg.data.max_range_m
         self._map = kp._VoxelHashMap(voxel_size=self.voxel_size_m, max_distance=self.max_range_m,
@@ -210,7 +213,7 @@ class Odometry:
         self._anchors.append((T_world_kf, points_kf))
         self._target = None
 
-    def _refine(self, frame_down, T_world_points: np.ndarray) -> np.ndarray:
+    def _refine(self, frame_down, T_world_points: np.ndarray, evidence: bool) -> np.ndarray:
         """T_world_points refined against the last keyframes, or kept: by the correction gate,
         or (odometry.refine_evidence) when the scan's held-out points do not prove it better."""
         o = self.cfg.odometry
@@ -223,7 +226,7 @@ class Odometry:
         points = np.asarray(frame_down)
         step = max(1, math.ceil(len(points) / o.refine_max_points))
         held = None
-        if o.refine_evidence:
+        if evidence:
             # The evidence needs points the refinement does not see: every other one of a
             # small scan's goes to the source, and the held-out set is offset half a stride.
             step = max(2, step)
@@ -283,13 +286,16 @@ class Odometry:
         source = kp._voxel_down_sample(frame_down, self.voxel_size_m * 1.5)
         sigma = self._threshold._compute_threshold()
         kernel = self.failures.kernel(sigma, self.cfg.odometry.initial_threshold_m)
+        predicted = initial_guess is not None  # by the IMU
         if initial_guess is None:
             initial_guess = self.last_pose @ self.last_delta
         new_pose = self._registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
         if refine and self._anchors:
-            new_pose = self._refine(frame_down, new_pose)
+            mode = self.cfg.odometry.refine_evidence
+            evidence = mode is True or (mode == "with_imu" and self.imu and predicted)
+            new_pose = self._refine(frame_down, new_pose, evidence)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
