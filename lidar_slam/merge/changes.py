@@ -1,13 +1,16 @@
 """What changed between sessions: points one session saw where another saw through.
 
-For every pair of kept sessions, each keyframe cloud of one (in the merged frame, voxelised) is
-tested against the keyframes of the other within reach: a keyframe "sees through" a point when,
-in the direction of the point, its own cloud's nearest return (the minimum range in that
-direction's bin of its range image) lies more than margin_m beyond the point; it "sees" the
-point when a return lies within margin_m of it. A point that the other session saw through at
-least min_votes times and through more than twice as often as it saw it is changed: appeared
-when the point's session is the later one (in the order given), disappeared when it is the
-earlier. Changed points are clustered (open3d DBSCAN) into objects.
+Each kept session's keyframe clouds (in the merged frame, voxelised) are tested against the
+keyframes of the other sessions that see the same place: per cell of cell_m the max_keyframes
+keyframes of other sessions nearest to it in the merged frame (within reach_m; one KD-tree over
+every session's keyframe positions), so the cost grows with points x max_keyframes, not with
+sessions squared. A keyframe "sees through" a point when, in the direction of the point, its
+own cloud's nearest return (the minimum range in that direction's bin of its range image) lies
+more than margin_m beyond the point; it "sees" the point when a return lies within margin_m of
+it. Votes are counted per other session: a point that one other session saw through at least
+min_votes times and through more than twice as often as it saw it is changed: appeared when
+the point's session is the later one (in the order given), disappeared when it is the earlier.
+Changed points are clustered (open3d DBSCAN) into objects.
 
 The keyframe clouds are voxelised (keyframes.cloud_voxel_m), so range-image bins are wide
 (bin_deg) and a bin without a return says nothing (no vote).
@@ -19,9 +22,11 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import inverse, transform_points
+from lidar_slam.merge.loops import nearest_of_others
 from lidar_slam.merge.session import Session
 
 log = logging.getLogger(__name__)
@@ -30,13 +35,16 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class ChangeOptions:
     """Bin size of the range images (deg), how far beyond a point a return must lie to see
-    through it (m), votes needed, reach of a keyframe (m), the points' voxel (m), and the
-    clustering radius (m) and minimum points of a changed object."""
+    through it (m), votes needed, reach of a keyframe (m), how many keyframes of other
+    sessions vote on a point (the nearest to its cell of cell_m, m), the points' voxel (m),
+    and the clustering radius (m) and minimum points of a changed object."""
 
     bin_deg: float = 3.0
     margin_m: float = 0.6
     min_votes: int = 3
     reach_m: float = 15.0
+    max_keyframes: int = 60
+    cell_m: float = 2.5
     voxel_m: float = 0.25
     cluster_m: float = 0.8
     cluster_min_points: int = 3
@@ -114,53 +122,70 @@ def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions,
     return points[np.abs(np.asarray(cloud.normals)[:, 2]) <= opts.max_normal_z]
 
 
-def _through(points: np.ndarray, other: Session, T_merged_kf: np.ndarray,
-             opts: ChangeOptions) -> tuple[np.ndarray, np.ndarray]:
-    """How often the other session's keyframes saw through / saw each point (merged frame)."""
-    through = np.zeros(len(points), dtype=np.int64)
-    seen = np.zeros(len(points), dtype=np.int64)
-    for k in range(len(other)):
-        if not other.map.counts[k]:
+def _votes(clouds: dict[int, np.ndarray], sessions: list[Session],
+           T_merged_kf: dict[int, np.ndarray], opts: ChangeOptions
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """All sessions' points (N, 3) stacked, each one's session, and how often each other
+    session's keyframes saw through / saw it ((N, S) counts, columns in the order of the
+    returned session indices): per cell of points the max_keyframes keyframes of other
+    sessions nearest to it vote, each keyframe's range image built once."""
+    order = [s.index for s in sessions]
+    column = {i: c for c, i in enumerate(order)}
+    points = np.concatenate([clouds[i] for i in order])
+    owner = np.concatenate([np.full(len(clouds[i]), i) for i in order])
+    through = np.zeros((len(points), len(order)), dtype=np.int16)
+    seen = np.zeros((len(points), len(order)), dtype=np.int16)
+    if len(points) == 0:
+        return points, owner, through, seen, order
+    voters = [(s, k) for s in sessions for k in range(len(s)) if s.map.counts[k]]
+    origins = np.stack([T_merged_kf[s.index][k][:3, 3] for s, k in voters])
+    voter_session = np.array([s.index for s, _ in voters])
+    tree = cKDTree(origins)
+    # Cells of one session's points: the keyframes that vote on them are chosen per cell.
+    cells = np.floor(points / opts.cell_m).astype(np.int64)
+    _, group = np.unique(np.column_stack([owner, cells]), axis=0, return_inverse=True)
+    group = group.ravel()
+    by_group = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[by_group], np.arange(group.max() + 2))
+    reach = opts.reach_m + opts.cell_m * np.sqrt(3) / 2
+    groups_of: dict[int, list[int]] = {}
+    for g in range(len(bounds) - 1):
+        first = by_group[bounds[g]]
+        centre = (cells[first] + 0.5) * opts.cell_m
+        _, near = nearest_of_others(tree, voter_session, centre, int(owner[first]),
+                                  opts.max_keyframes, reach)
+        for v in near:
+            groups_of.setdefault(int(v), []).append(g)
+    for v, gs in groups_of.items():
+        s, k = voters[v]
+        idx = np.concatenate([by_group[bounds[g]:bounds[g + 1]] for g in gs])
+        idx = idx[np.linalg.norm(points[idx] - origins[v], axis=1) < opts.reach_m]
+        if len(idx) == 0:
             continue
-        origin = T_merged_kf[k][:3, 3]
-        near = np.flatnonzero(np.linalg.norm(points - origin, axis=1) < opts.reach_m)
-        if len(near) == 0:
-            continue
-        image = _RangeImage(other.map.keyframe(k).points.astype(np.float64), opts.bin_deg)
-        t, s = image.votes(transform_points(inverse(T_merged_kf[k]), points[near]),
-                           opts.margin_m)
-        through[near] += t
-        seen[near] += s
-    return through, seen
+        image = _RangeImage(s.map.keyframe(k).points.astype(np.float64), opts.bin_deg)
+        t, v_ = image.votes(transform_points(inverse(T_merged_kf[s.index][k]), points[idx]),
+                            opts.margin_m)
+        through[idx, column[s.index]] += t.astype(np.int16)
+        seen[idx, column[s.index]] += v_.astype(np.int16)
+    return points, owner, through, seen, order
 
 
 def detect_changes(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
                    opts: ChangeOptions | None = None,
                    moving: dict[tuple[int, int], np.ndarray] | None = None) -> ChangeCloud:
-    """Appeared and disappeared points between every pair of kept sessions (module doc);
-    moving: (session, keyframe) -> the points to leave out (merge.moving)."""
+    """Appeared and disappeared points between the kept sessions (module doc); moving:
+    (session, keyframe) -> the points to leave out (merge.moving)."""
     from lidar_slam.o3d import o3d
 
     opts = opts or ChangeOptions()
     kept = [s for s in sessions if s.index in T_merged_kf]
     clouds = {s.index: _session_points(s, T_merged_kf[s.index], opts, moving) for s in kept}
-    pts, sess, app = [], [], []
-    for s in kept:
-        changed = np.zeros(len(clouds[s.index]), dtype=bool)
-        later = np.zeros(len(clouds[s.index]), dtype=bool)
-        for o in kept:
-            if o.index == s.index:
-                continue
-            through, seen = _through(clouds[s.index], o, T_merged_kf[o.index], opts)
-            hit = (through >= opts.min_votes) & (through > 2 * seen)
-            changed |= hit
-            later |= hit & (s.index > o.index)
-        pts.append(clouds[s.index][changed])
-        sess.append(np.full(int(changed.sum()), s.index, dtype=np.int32))
-        app.append(later[changed])
-    points = np.concatenate(pts) if pts else np.zeros((0, 3))
-    session = np.concatenate(sess) if sess else np.zeros(0, dtype=np.int32)
-    appeared = np.concatenate(app) if app else np.zeros(0, dtype=bool)
+    points, owner, through, seen, order = _votes(clouds, kept, T_merged_kf, opts)
+    hit = (through >= opts.min_votes) & (through > 2 * seen)
+    changed = hit.any(axis=1)
+    earlier = np.array(order)[None, :] < owner[:, None]
+    later = (hit & earlier).any(axis=1)
+    points, session, appeared = points[changed], owner[changed].astype(np.int32), later[changed]
     cluster = np.full(len(points), -1, dtype=np.int32)
     for group in ((appeared, ), (~appeared, )):
         sel = np.flatnonzero(group[0])
