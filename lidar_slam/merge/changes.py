@@ -19,6 +19,7 @@ The keyframe clouds are voxelised (keyframes.cloud_voxel_m), so range-image bins
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -122,51 +123,71 @@ def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions,
     return points[np.abs(np.asarray(cloud.normals)[:, 2]) <= opts.max_normal_z]
 
 
+def place_votes(points: np.ndarray, owner: np.ndarray, origins: np.ndarray,
+                voter_owner: np.ndarray, voter_column: np.ndarray, n_columns: int,
+                voter: Callable[[int], tuple[np.ndarray, np.ndarray]], max_keyframes: int,
+                reach_m: float, cell_m: float, bin_deg: float, margin_m: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """How often keyframes near each point saw through / saw it ((N, n_columns) counts, a
+    voter's votes in its column). points (N, 3) and the keyframes' origins (V, 3) in one
+    frame; a keyframe votes on a point when its owner differs from the point's, it is among
+    the max_keyframes such keyframes nearest to the point's cell (cell_m; one KD-tree over the
+    origins) and within reach_m of the point; voter(v): keyframe v's cloud in its own frame and
+    its pose. Each voter's range image is built once."""
+    through = np.zeros((len(points), n_columns), dtype=np.int16)
+    seen = np.zeros((len(points), n_columns), dtype=np.int16)
+    if len(points) == 0 or len(origins) == 0:
+        return through, seen
+    tree = cKDTree(origins)
+    # Cells of one owner's points: the keyframes that vote on them are chosen per cell.
+    cells = np.floor(points / cell_m).astype(np.int64)
+    _, group = np.unique(np.column_stack([owner, cells]), axis=0, return_inverse=True)
+    group = group.ravel()
+    by_group = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[by_group], np.arange(group.max() + 2))
+    reach = reach_m + cell_m * np.sqrt(3) / 2
+    groups_of: dict[int, list[int]] = {}
+    for g in range(len(bounds) - 1):
+        first = by_group[bounds[g]]
+        _, near = nearest_of_others(tree, voter_owner, (cells[first] + 0.5) * cell_m,
+                                    int(owner[first]), max_keyframes, reach)
+        for v in near:
+            groups_of.setdefault(int(v), []).append(g)
+    for v, gs in groups_of.items():
+        idx = np.concatenate([by_group[bounds[g]:bounds[g + 1]] for g in gs])
+        idx = idx[np.linalg.norm(points[idx] - origins[v], axis=1) < reach_m]
+        if len(idx) == 0:
+            continue
+        cloud, T = voter(v)
+        t, s = _RangeImage(cloud, bin_deg).votes(transform_points(inverse(T), points[idx]),
+                                                 margin_m)
+        through[idx, voter_column[v]] += t.astype(np.int16)
+        seen[idx, voter_column[v]] += s.astype(np.int16)
+    return through, seen
+
+
 def _votes(clouds: dict[int, np.ndarray], sessions: list[Session],
            T_merged_kf: dict[int, np.ndarray], opts: ChangeOptions
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """All sessions' points (N, 3) stacked, each one's session, and how often each other
     session's keyframes saw through / saw it ((N, S) counts, columns in the order of the
     returned session indices): per cell of points the max_keyframes keyframes of other
-    sessions nearest to it vote, each keyframe's range image built once."""
+    sessions nearest to it vote (place_votes)."""
     order = [s.index for s in sessions]
     column = {i: c for c, i in enumerate(order)}
     points = np.concatenate([clouds[i] for i in order])
     owner = np.concatenate([np.full(len(clouds[i]), i) for i in order])
-    through = np.zeros((len(points), len(order)), dtype=np.int16)
-    seen = np.zeros((len(points), len(order)), dtype=np.int16)
-    if len(points) == 0:
-        return points, owner, through, seen, order
     voters = [(s, k) for s in sessions for k in range(len(s)) if s.map.counts[k]]
     origins = np.stack([T_merged_kf[s.index][k][:3, 3] for s, k in voters])
-    voter_session = np.array([s.index for s, _ in voters])
-    tree = cKDTree(origins)
-    # Cells of one session's points: the keyframes that vote on them are chosen per cell.
-    cells = np.floor(points / opts.cell_m).astype(np.int64)
-    _, group = np.unique(np.column_stack([owner, cells]), axis=0, return_inverse=True)
-    group = group.ravel()
-    by_group = np.argsort(group, kind="stable")
-    bounds = np.searchsorted(group[by_group], np.arange(group.max() + 2))
-    reach = opts.reach_m + opts.cell_m * np.sqrt(3) / 2
-    groups_of: dict[int, list[int]] = {}
-    for g in range(len(bounds) - 1):
-        first = by_group[bounds[g]]
-        centre = (cells[first] + 0.5) * opts.cell_m
-        _, near = nearest_of_others(tree, voter_session, centre, int(owner[first]),
-                                  opts.max_keyframes, reach)
-        for v in near:
-            groups_of.setdefault(int(v), []).append(g)
-    for v, gs in groups_of.items():
+
+    def voter(v: int) -> tuple[np.ndarray, np.ndarray]:
         s, k = voters[v]
-        idx = np.concatenate([by_group[bounds[g]:bounds[g + 1]] for g in gs])
-        idx = idx[np.linalg.norm(points[idx] - origins[v], axis=1) < opts.reach_m]
-        if len(idx) == 0:
-            continue
-        image = _RangeImage(s.map.keyframe(k).points.astype(np.float64), opts.bin_deg)
-        t, v_ = image.votes(transform_points(inverse(T_merged_kf[s.index][k]), points[idx]),
-                            opts.margin_m)
-        through[idx, column[s.index]] += t.astype(np.int16)
-        seen[idx, column[s.index]] += v_.astype(np.int16)
+        return s.map.keyframe(k).points.astype(np.float64), T_merged_kf[s.index][k]
+
+    through, seen = place_votes(
+        points, owner, origins, np.array([s.index for s, _ in voters]),
+        np.array([column[s.index] for s, _ in voters]), len(order), voter, opts.max_keyframes,
+        opts.reach_m, opts.cell_m, opts.bin_deg, opts.margin_m)
     return points, owner, through, seen, order
 
 
