@@ -139,26 +139,53 @@ def place_votes(points: np.ndarray, owner: np.ndarray, origins: np.ndarray,
     if len(points) == 0 or len(origins) == 0:
         return through, seen
     tree = cKDTree(origins)
-    # Cells of one owner's points: the keyframes that vote on them are chosen per cell.
+    # Cells of one owner's points (a key: owner and cell, 16 bits per axis of cells): the
+    # keyframes that vote on them are chosen per cell.
     cells = np.floor(points / cell_m).astype(np.int64)
-    _, group = np.unique(np.column_stack([owner, cells]), axis=0, return_inverse=True)
+    key = owner.astype(np.int64) << 48
+    for axis, shift in enumerate((32, 16, 0)):
+        key |= ((cells[:, axis] + (1 << 15)) & 0xFFFF) << shift
+    _, first, group = np.unique(key, return_index=True, return_inverse=True)
     group = group.ravel()
     by_group = np.argsort(group, kind="stable")
-    bounds = np.searchsorted(group[by_group], np.arange(group.max() + 2))
+    bounds = np.searchsorted(group[by_group], np.arange(len(first) + 1))
+    centres = (cells[first] + 0.5) * cell_m
+    g_owner = owner[first]
     reach = reach_m + cell_m * np.sqrt(3) / 2
-    groups_of: dict[int, list[int]] = {}
-    for g in range(len(bounds) - 1):
-        first = by_group[bounds[g]]
-        _, near = nearest_of_others(tree, voter_owner, (cells[first] + 0.5) * cell_m,
-                                    int(owner[first]), max_keyframes, reach)
-        for v in near:
-            groups_of.setdefault(int(v), []).append(g)
-    for v, gs in groups_of.items():
-        idx = np.concatenate([by_group[bounds[g]:bounds[g + 1]] for g in gs])
+    k = min(2 * max_keyframes, tree.n)
+    pair_g, pair_v = [], []
+    for lo in range(0, len(first), 4096):  # (cells, k) blocks: the nearest keyframes first
+        d, j = tree.query(centres[lo:lo + 4096], k=k, distance_upper_bound=reach)
+        d, j = d.reshape(len(d), -1), j.reshape(len(j), -1)
+        ok = np.isfinite(d)
+        ok[ok] = voter_owner[j[ok]] != np.repeat(g_owner[lo:lo + 4096], ok.sum(axis=1))
+        rank = np.cumsum(ok, axis=1)
+        ok &= rank <= max_keyframes
+        rows, cols = np.nonzero(ok)
+        pair_g.append(rows + lo)
+        pair_v.append(j[rows, cols])
+        # Cells whose k nearest are all within reach and hold too few others: search wider.
+        for r in np.flatnonzero((rank[:, -1] < max_keyframes) & np.isfinite(d[:, -1])
+                                & (k < tree.n)):
+            g = lo + r
+            _, near = nearest_of_others(tree, voter_owner, centres[g], int(g_owner[g]),
+                                        max_keyframes, reach)
+            pair_g.append(np.full(len(near), g))
+            pair_v.append(near)
+    pair_g, pair_v = np.concatenate(pair_g), np.concatenate(pair_v)
+    order = np.argsort(pair_v, kind="stable")
+    pair_g, pair_v = pair_g[order], pair_v[order]
+    voters, starts = np.unique(pair_v, return_index=True)
+    sizes = np.diff(bounds)
+    for v, gs in zip(voters, np.split(pair_g, starts[1:])):
+        lens = sizes[gs]
+        pos = np.repeat(bounds[gs] - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(
+            lens.sum())
+        idx = by_group[pos]
         idx = idx[np.linalg.norm(points[idx] - origins[v], axis=1) < reach_m]
         if len(idx) == 0:
             continue
-        cloud, T = voter(v)
+        cloud, T = voter(int(v))
         t, s = _RangeImage(cloud, bin_deg).votes(transform_points(inverse(T), points[idx]),
                                                  margin_m)
         through[idx, voter_column[v]] += t.astype(np.int16)
