@@ -105,6 +105,38 @@ def test_a_mover_is_hit_where_it_is_at_each_rays_instant():
     assert (cls[:2] >= 0).all() and cls[2] == -1
 
 
+def test_votes_come_from_the_keyframes_of_others_nearest_the_point():
+    """place_votes: a wall at x = 5 seen by keyframes of another session; only the
+    max_keyframes of them nearest to the point's cell vote, never the point's own session's,
+    never one beyond reach; a keyframe whose cloud lies beyond the point sees through it."""
+    from scipy.spatial import cKDTree
+
+    from lidar_slam.merge.changes import place_votes
+    from lidar_slam.merge.loops import nearest_of_others
+
+    yz = np.stack(np.meshgrid(np.linspace(-8, 8, 161), np.linspace(-4, 4, 81)), -1).reshape(
+        -1, 2)
+    origins = np.array([[x, 0.0, 0.0] for x in (0.0, -1.0, -2.0, -3.0, -30.0)])
+    owner = np.array([1, 1, 1, 0, 1])  # keyframe 3 is the point's own session's
+
+    def voter(v):  # keyframes 0-2 see the wall at x = 5, 4 one at x = 12 (the wall gone)
+        wall = 5.0 if v < 4 else 12.0
+        T = np.eye(4)
+        T[:3, 3] = origins[v]
+        behind = [[-1.0, 0.0, 0.0]]  # its nearest return: points beyond it are judged
+        return np.r_[np.c_[np.full(len(yz), wall - origins[v, 0]), yz], behind], T
+
+    point = np.array([[5.0, 0.0, 0.0]])
+    through, seen = place_votes(point, np.array([0]), origins, owner, np.zeros(5, int), 1,
+                                voter, 2, 15.0, 2.5, 3.0, 0.6)
+    assert seen[0, 0] == 2 and through[0, 0] == 0  # keyframes 0 and 1: 2 nearest others
+    through, seen = place_votes(point, np.array([0]), origins, owner, np.zeros(5, int), 1,
+                                voter, 5, 40.0, 2.5, 3.0, 0.6)
+    assert seen[0, 0] == 3 and through[0, 0] == 1  # 0-2 see it, 4 (35 m away) sees through
+    d, j = nearest_of_others(cKDTree(origins), owner, point[0], 0, 10, 15.0)
+    assert list(j) == [0, 1, 2] and np.all(np.diff(d) > 0)
+
+
 def test_merged_geo_follows_the_session_that_had_gnss():
     """No GNSS in the reference, GNSS in session 1: the merged frame is put on the Earth by
     session 1's geo-reference carried by where the merge put that session."""

@@ -71,10 +71,11 @@ class MergeResult:
 
 def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int = 2,
                max_verify: int = 3, overwrite: bool = False, guided_radius_m: float = 3.0,
-               detect: bool = True) -> MergeResult:
+               detect: bool = True, max_links: int = 2) -> MergeResult:
     """Merge the run folders into out (the --out rule: refused when it holds files, unless
     overwrite); raises InputError for a folder that is not a finished run with keyframes,
-    RunFailed for a reference out of range or an --out that is one of the runs."""
+    RunFailed for a reference out of range or an --out that is one of the runs. max_links: the
+    other sessions a keyframe is linked to at most (merge.loops)."""
     from lidar_slam.run.outdir import prepare_out_dir
 
     t0 = time.perf_counter()
@@ -94,12 +95,12 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
             sessions.append(open_session(i, run))
         prepare_out_dir(out, MERGE_OUTPUTS, overwrite)
         cfg = sessions[reference].map.cfg
-        loops, search = find_loops(sessions, cfg, max_verify)
+        loops, search = find_loops(sessions, cfg, max_verify, max_links)
         anc = anchors(sessions, loops, reference, min_loops)
         sol = solve(sessions, loops, anc, reference)
         if guided_radius_m > 0 and len(sol.T_merged_kf) > 1:
             more, n_verified = guided_loops(sessions, sol.T_merged_kf, _kept(loops, sol), cfg,
-                                            guided_radius_m)
+                                            guided_radius_m, max_links)
             search.verified += n_verified
             search.accepted += len(more)
             loops += more

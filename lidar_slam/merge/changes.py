@@ -1,13 +1,16 @@
 """What changed between sessions: points one session saw where another saw through.
 
-For every pair of kept sessions, each keyframe cloud of one (in the merged frame, voxelised) is
-tested against the keyframes of the other within reach: a keyframe "sees through" a point when,
-in the direction of the point, its own cloud's nearest return (the minimum range in that
-direction's bin of its range image) lies more than margin_m beyond the point; it "sees" the
-point when a return lies within margin_m of it. A point that the other session saw through at
-least min_votes times and through more than twice as often as it saw it is changed: appeared
-when the point's session is the later one (in the order given), disappeared when it is the
-earlier. Changed points are clustered (open3d DBSCAN) into objects.
+Each kept session's keyframe clouds (in the merged frame, voxelised) are tested against the
+keyframes of the other sessions that see the same place: per cell of cell_m the max_keyframes
+keyframes of other sessions nearest to it in the merged frame (within reach_m; one KD-tree over
+every session's keyframe positions), so the cost grows with points x max_keyframes, not with
+sessions squared. A keyframe "sees through" a point when, in the direction of the point, its
+own cloud's nearest return (the minimum range in that direction's bin of its range image) lies
+more than margin_m beyond the point; it "sees" the point when a return lies within margin_m of
+it. Votes are counted per other session: a point that one other session saw through at least
+min_votes times and through more than twice as often as it saw it is changed: appeared when
+the point's session is the later one (in the order given), disappeared when it is the earlier.
+Changed points are clustered (open3d DBSCAN) into objects.
 
 The keyframe clouds are voxelised (keyframes.cloud_voxel_m), so range-image bins are wide
 (bin_deg) and a bin without a return says nothing (no vote).
@@ -16,12 +19,15 @@ The keyframe clouds are voxelised (keyframes.cloud_voxel_m), so range-image bins
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import inverse, transform_points
+from lidar_slam.merge.loops import nearest_of_others
 from lidar_slam.merge.session import Session
 
 log = logging.getLogger(__name__)
@@ -30,13 +36,16 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class ChangeOptions:
     """Bin size of the range images (deg), how far beyond a point a return must lie to see
-    through it (m), votes needed, reach of a keyframe (m), the points' voxel (m), and the
-    clustering radius (m) and minimum points of a changed object."""
+    through it (m), votes needed, reach of a keyframe (m), how many keyframes of other
+    sessions vote on a point (the nearest to its cell of cell_m, m), the points' voxel (m),
+    and the clustering radius (m) and minimum points of a changed object."""
 
     bin_deg: float = 3.0
     margin_m: float = 0.6
     min_votes: int = 3
     reach_m: float = 15.0
+    max_keyframes: int = 60
+    cell_m: float = 2.5
     voxel_m: float = 0.25
     cluster_m: float = 0.8
     cluster_min_points: int = 3
@@ -114,53 +123,117 @@ def _session_points(s: Session, T_merged_kf: np.ndarray, opts: ChangeOptions,
     return points[np.abs(np.asarray(cloud.normals)[:, 2]) <= opts.max_normal_z]
 
 
-def _through(points: np.ndarray, other: Session, T_merged_kf: np.ndarray,
-             opts: ChangeOptions) -> tuple[np.ndarray, np.ndarray]:
-    """How often the other session's keyframes saw through / saw each point (merged frame)."""
-    through = np.zeros(len(points), dtype=np.int64)
-    seen = np.zeros(len(points), dtype=np.int64)
-    for k in range(len(other)):
-        if not other.map.counts[k]:
+def place_votes(points: np.ndarray, owner: np.ndarray, origins: np.ndarray,
+                voter_owner: np.ndarray, voter_column: np.ndarray, n_columns: int,
+                voter: Callable[[int], tuple[np.ndarray, np.ndarray]], max_keyframes: int,
+                reach_m: float, cell_m: float, bin_deg: float, margin_m: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """How often keyframes near each point saw through / saw it ((N, n_columns) counts, a
+    voter's votes in its column). points (N, 3) and the keyframes' origins (V, 3) in one
+    frame; a keyframe votes on a point when its owner differs from the point's, it is among
+    the max_keyframes such keyframes nearest to the point's cell (cell_m; one KD-tree over the
+    origins) and within reach_m of the point; voter(v): keyframe v's cloud in its own frame and
+    its pose. Each voter's range image is built once."""
+    through = np.zeros((len(points), n_columns), dtype=np.int16)
+    seen = np.zeros((len(points), n_columns), dtype=np.int16)
+    if len(points) == 0 or len(origins) == 0:
+        return through, seen
+    tree = cKDTree(origins)
+    # Cells of one owner's points (a key: owner and cell, 16 bits per axis of cells): the
+    # keyframes that vote on them are chosen per cell.
+    cells = np.floor(points / cell_m).astype(np.int64)
+    key = owner.astype(np.int64) << 48
+    for axis, shift in enumerate((32, 16, 0)):
+        key |= ((cells[:, axis] + (1 << 15)) & 0xFFFF) << shift
+    _, first, group = np.unique(key, return_index=True, return_inverse=True)
+    group = group.ravel()
+    by_group = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[by_group], np.arange(len(first) + 1))
+    centres = (cells[first] + 0.5) * cell_m
+    g_owner = owner[first]
+    reach = reach_m + cell_m * np.sqrt(3) / 2
+    k = min(2 * max_keyframes, tree.n)
+    pair_g, pair_v = [], []
+    for lo in range(0, len(first), 4096):  # (cells, k) blocks: the nearest keyframes first
+        d, j = tree.query(centres[lo:lo + 4096], k=k, distance_upper_bound=reach)
+        d, j = d.reshape(len(d), -1), j.reshape(len(j), -1)
+        ok = np.isfinite(d)
+        ok[ok] = voter_owner[j[ok]] != np.repeat(g_owner[lo:lo + 4096], ok.sum(axis=1))
+        rank = np.cumsum(ok, axis=1)
+        ok &= rank <= max_keyframes
+        rows, cols = np.nonzero(ok)
+        pair_g.append(rows + lo)
+        pair_v.append(j[rows, cols])
+        # Cells whose k nearest are all within reach and hold too few others: search wider.
+        for r in np.flatnonzero((rank[:, -1] < max_keyframes) & np.isfinite(d[:, -1])
+                                & (k < tree.n)):
+            g = lo + r
+            _, near = nearest_of_others(tree, voter_owner, centres[g], int(g_owner[g]),
+                                        max_keyframes, reach)
+            pair_g.append(np.full(len(near), g))
+            pair_v.append(near)
+    pair_g, pair_v = np.concatenate(pair_g), np.concatenate(pair_v)
+    order = np.argsort(pair_v, kind="stable")
+    pair_g, pair_v = pair_g[order], pair_v[order]
+    voters, starts = np.unique(pair_v, return_index=True)
+    sizes = np.diff(bounds)
+    for v, gs in zip(voters, np.split(pair_g, starts[1:])):
+        lens = sizes[gs]
+        pos = np.repeat(bounds[gs] - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(
+            lens.sum())
+        idx = by_group[pos]
+        idx = idx[np.linalg.norm(points[idx] - origins[v], axis=1) < reach_m]
+        if len(idx) == 0:
             continue
-        origin = T_merged_kf[k][:3, 3]
-        near = np.flatnonzero(np.linalg.norm(points - origin, axis=1) < opts.reach_m)
-        if len(near) == 0:
-            continue
-        image = _RangeImage(other.map.keyframe(k).points.astype(np.float64), opts.bin_deg)
-        t, s = image.votes(transform_points(inverse(T_merged_kf[k]), points[near]),
-                           opts.margin_m)
-        through[near] += t
-        seen[near] += s
+        cloud, T = voter(int(v))
+        t, s = _RangeImage(cloud, bin_deg).votes(transform_points(inverse(T), points[idx]),
+                                                 margin_m)
+        through[idx, voter_column[v]] += t.astype(np.int16)
+        seen[idx, voter_column[v]] += s.astype(np.int16)
     return through, seen
+
+
+def _votes(clouds: dict[int, np.ndarray], sessions: list[Session],
+           T_merged_kf: dict[int, np.ndarray], opts: ChangeOptions
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """All sessions' points (N, 3) stacked, each one's session, and how often each other
+    session's keyframes saw through / saw it ((N, S) counts, columns in the order of the
+    returned session indices): per cell of points the max_keyframes keyframes of other
+    sessions nearest to it vote (place_votes)."""
+    order = [s.index for s in sessions]
+    column = {i: c for c, i in enumerate(order)}
+    points = np.concatenate([clouds[i] for i in order])
+    owner = np.concatenate([np.full(len(clouds[i]), i) for i in order])
+    voters = [(s, k) for s in sessions for k in range(len(s)) if s.map.counts[k]]
+    origins = np.stack([T_merged_kf[s.index][k][:3, 3] for s, k in voters])
+
+    def voter(v: int) -> tuple[np.ndarray, np.ndarray]:
+        s, k = voters[v]
+        return s.map.keyframe(k).points.astype(np.float64), T_merged_kf[s.index][k]
+
+    through, seen = place_votes(
+        points, owner, origins, np.array([s.index for s, _ in voters]),
+        np.array([column[s.index] for s, _ in voters]), len(order), voter, opts.max_keyframes,
+        opts.reach_m, opts.cell_m, opts.bin_deg, opts.margin_m)
+    return points, owner, through, seen, order
 
 
 def detect_changes(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
                    opts: ChangeOptions | None = None,
                    moving: dict[tuple[int, int], np.ndarray] | None = None) -> ChangeCloud:
-    """Appeared and disappeared points between every pair of kept sessions (module doc);
-    moving: (session, keyframe) -> the points to leave out (merge.moving)."""
+    """Appeared and disappeared points between the kept sessions (module doc); moving:
+    (session, keyframe) -> the points to leave out (merge.moving)."""
     from lidar_slam.o3d import o3d
 
     opts = opts or ChangeOptions()
     kept = [s for s in sessions if s.index in T_merged_kf]
     clouds = {s.index: _session_points(s, T_merged_kf[s.index], opts, moving) for s in kept}
-    pts, sess, app = [], [], []
-    for s in kept:
-        changed = np.zeros(len(clouds[s.index]), dtype=bool)
-        later = np.zeros(len(clouds[s.index]), dtype=bool)
-        for o in kept:
-            if o.index == s.index:
-                continue
-            through, seen = _through(clouds[s.index], o, T_merged_kf[o.index], opts)
-            hit = (through >= opts.min_votes) & (through > 2 * seen)
-            changed |= hit
-            later |= hit & (s.index > o.index)
-        pts.append(clouds[s.index][changed])
-        sess.append(np.full(int(changed.sum()), s.index, dtype=np.int32))
-        app.append(later[changed])
-    points = np.concatenate(pts) if pts else np.zeros((0, 3))
-    session = np.concatenate(sess) if sess else np.zeros(0, dtype=np.int32)
-    appeared = np.concatenate(app) if app else np.zeros(0, dtype=bool)
+    points, owner, through, seen, order = _votes(clouds, kept, T_merged_kf, opts)
+    hit = (through >= opts.min_votes) & (through > 2 * seen)
+    changed = hit.any(axis=1)
+    earlier = np.array(order)[None, :] < owner[:, None]
+    later = (hit & earlier).any(axis=1)
+    points, session, appeared = points[changed], owner[changed].astype(np.int32), later[changed]
     cluster = np.full(len(points), -1, dtype=np.int32)
     for group in ((appeared, ), (~appeared, )):
         sel = np.flatnonzero(group[0])

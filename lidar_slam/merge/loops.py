@@ -1,7 +1,15 @@
-"""Loops between sessions: every keyframe of one session against the keyframes of another by
-Scan Context (nearest ring keys, then every column shift: sessions may go the other way round),
-each candidate verified by the loop-closure ICP gates (lidar_slam.loop.verify) on the query
-keyframe's cloud against the match keyframe's submap, as within a run."""
+"""Loops between sessions through one place index over every session's keyframes.
+
+Candidates by place, not by session pair: a KD-tree (scipy) over the Scan Context ring keys of
+all sessions' keyframes gives each keyframe the nearest ring keys of the other sessions, each
+compared at every column shift (sessions may go the other way round); the best are verified by
+the loop-closure ICP gates (lidar_slam.loop.verify) on the query keyframe's cloud against the
+match keyframe's submap, as within a run. Once a solve has placed the sessions, a guided pass
+verifies each keyframe against the other sessions' keyframes nearest to it in the merged frame
+(a KD-tree over positions). Each keyframe gets a bounded number of candidates, verifications
+and links (at most max_links other sessions), so the cost grows with keyframes, not with
+sessions squared.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +17,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.loop.scan_context import column_distances, describe, shift_to_yaw
@@ -70,65 +79,108 @@ class SessionGrids:
         self.ring_keys = self.grids.mean(axis=2)
 
 
-def candidates(query_grid: np.ndarray, target: SessionGrids, cfg: SlamConfig
-               ) -> list[tuple[float, int, float]]:
-    """(distance, match keyframe id, yaw guess rad) below the threshold, best first: the
-    nearest ring keys, each compared at every column shift."""
-    sc = cfg.loop.scan_context
-    key = query_grid.mean(axis=1)
-    near = np.argsort(np.linalg.norm(target.ring_keys - key[None, :], axis=1),
-                      kind="stable")[: sc.candidates]
-    shifts = np.arange(sc.sectors)
-    out = []
-    for j in near:
-        dist = column_distances(query_grid, target.grids[j], shifts)
-        best = int(np.argmin(dist))
-        if dist[best] < sc.threshold:
-            out.append((float(dist[best]), int(target.ids[j]), shift_to_yaw(best, sc.sectors)))
-    return sorted(out)
+def nearest_of_others(tree: cKDTree, owner: np.ndarray, x: np.ndarray, session: int, n: int,
+                      upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """(distances, entries) of the n entries of tree nearest to x whose owner is not session,
+    nearest first, within upper: the query widened (doubled) until n others are found or the
+    tree is exhausted."""
+    k = 2 * n
+    while True:
+        k = min(k, tree.n)
+        d, j = tree.query(x, k=k, distance_upper_bound=upper)
+        d, j = np.atleast_1d(d), np.atleast_1d(j)
+        ok = np.isfinite(d)
+        ok[ok] = owner[j[ok]] != session
+        if ok.sum() >= n or k == tree.n or not np.isfinite(d[-1]):
+            return d[ok][:n], j[ok][:n]
+        k *= 2
 
 
-def find_loops(sessions: list[Session], cfg: SlamConfig, max_verify: int = 3
-               ) -> tuple[list[SessionLoop], LoopSearch]:
-    """Verified loops between every pair of sessions, both ways (each keyframe of b queried
-    among a's and each of a's among b's); per query keyframe the best max_verify candidates
-    are verified until one is accepted. Verification sides are built once per keyframe."""
+class PlaceIndex:
+    """Every session's keyframe descriptors in one index: a KD-tree over the ring keys of all
+    of them, each entry's session, keyframe id and grid."""
+
+    def __init__(self, grids: dict[int, SessionGrids]):
+        self.session = np.concatenate([np.full(len(g.ids), i) for i, g in grids.items()])
+        self.kf = np.concatenate([g.ids for g in grids.values()]).astype(np.int64)
+        self.grids = np.concatenate([g.grids for g in grids.values()])
+        self.tree = cKDTree(np.concatenate([g.ring_keys for g in grids.values()]))
+
+    def candidates(self, session: int, query_grid: np.ndarray, n: int, cfg: SlamConfig
+                   ) -> list[tuple[float, int, int, float]]:
+        """(distance, session, keyframe id, yaw guess rad) below the threshold, best first:
+        the n ring keys of other sessions nearest to the query's, each compared at every
+        column shift."""
+        sc = cfg.loop.scan_context
+        _, near = nearest_of_others(self.tree, self.session, query_grid.mean(axis=1),
+                                    session, n)
+        shifts = np.arange(sc.sectors)
+        out = []
+        for j in near:
+            dist = column_distances(query_grid, self.grids[j], shifts)
+            best = int(np.argmin(dist))
+            if dist[best] < sc.threshold:
+                out.append((float(dist[best]), int(self.session[j]), int(self.kf[j]),
+                            shift_to_yaw(best, sc.sectors)))
+        return sorted(out)
+
+
+def find_loops(sessions: list[Session], cfg: SlamConfig, max_verify: int = 3,
+               max_links: int = 2) -> tuple[list[SessionLoop], LoopSearch]:
+    """Verified loops between sessions through the place index (module doc): per keyframe the
+    loop.scan_context.candidates x max_links nearest ring keys of other sessions; per other
+    session the best max_verify of them verified until one is accepted, until the keyframe has
+    loops to max_links sessions (counting those where it was the match of another session's
+    query: such a keyframe is not queried again for them). A pair verified one way round is
+    not verified the other way. Verification sides are built once per keyframe."""
     grids = {s.index: SessionGrids(s, cfg) for s in sessions}
+    index = PlaceIndex(grids)
+    by_index = {s.index: s for s in sessions}
     vcfg = cfg.loop.verify
     radius = vcfg.submap_radius
+    n_cand = cfg.loop.scan_context.candidates * max_links
     stats = LoopSearch()
     loops: list[SessionLoop] = []
     matches: dict[tuple[int, int], Side] = {}
     tried: set[tuple[int, int, int, int]] = set()
+    links: dict[tuple[int, int], set[int]] = {}  # (session, keyframe) -> sessions linked
+    n_links = min(max_links, len(sessions) - 1)
     for sq in sessions:
         for k, grid in zip(grids[sq.index].ids, grids[sq.index].grids):
+            k = int(k)
+            mine = links.setdefault((sq.index, k), set())
+            if len(mine) >= n_links:
+                continue  # linked as the match of other sessions' queries
             q_side = None
-            for sm in sessions:
-                if sm.index == sq.index:
+            stats.queries += 1
+            found = index.candidates(sq.index, grid, n_cand, cfg)
+            stats.candidates += len(found)
+            tries: dict[int, int] = {}
+            done = set(mine)  # sessions linked (or already verified the other way)
+            for dist, o, m, yaw in found:
+                if o in done or tries.get(o, 0) >= max_verify:
                     continue
-                stats.queries += 1
-                found = candidates(grid, grids[sm.index], cfg)
-                stats.candidates += len(found)
-                for dist, m, yaw in found[:max_verify]:
-                    pair = (min(sq.index, sm.index), max(sq.index, sm.index))
-                    key = (pair[0], m if sm.index == pair[0] else int(k),
-                           pair[1], int(k) if sm.index == pair[0] else m)
-                    if key in tried:
-                        break  # already verified the other way round
-                    tried.add(key)
-                    if q_side is None:
-                        q_side = query_side(sq.map.keyframe(int(k)).points.astype(np.float64),
-                                            vcfg)
-                    if (sm.index, m) not in matches:
-                        matches[(sm.index, m)] = match_side(sm.map.submap(m, radius), vcfg)
-                    stats.verified += 1
-                    res = verify(LoopCandidate(int(k), m, dist, yaw), q_side,
-                                 matches[(sm.index, m)], vcfg)
-                    if res.accepted:
-                        c = res.constraint
-                        loops.append(SessionLoop(sm.index, m, sq.index, int(k), c.T_match_query,
-                                                 c.information, c.fitness, c.rmse_m, dist))
-                        stats.accepted += 1
+                key = (sq.index, k, o, m) if sq.index < o else (o, m, sq.index, k)
+                if key in tried:
+                    done.add(o)  # already verified the other way round
+                    continue
+                tried.add(key)
+                tries[o] = tries.get(o, 0) + 1
+                if q_side is None:
+                    q_side = query_side(sq.map.keyframe(k).points.astype(np.float64), vcfg)
+                if (o, m) not in matches:
+                    matches[(o, m)] = match_side(by_index[o].map.submap(m, radius), vcfg)
+                stats.verified += 1
+                res = verify(LoopCandidate(k, m, dist, yaw), q_side, matches[(o, m)], vcfg)
+                if res.accepted:
+                    c = res.constraint
+                    loops.append(SessionLoop(o, m, sq.index, k, c.T_match_query,
+                                             c.information, c.fitness, c.rmse_m, dist))
+                    stats.accepted += 1
+                    done.add(o)
+                    mine.add(o)
+                    links.setdefault((o, m), set()).add(sq.index)
+                    if len(mine) >= n_links:
                         break
         log.info("session %d: %d loops so far (%d verified)", sq.index, len(loops),
                  stats.verified)
@@ -136,46 +188,61 @@ def find_loops(sessions: list[Session], cfg: SlamConfig, max_verify: int = 3
 
 
 def guided_loops(sessions: list[Session], T_ref_kf: dict[int, np.ndarray],
-                 have: list[SessionLoop], cfg: SlamConfig, radius_m: float
-                 ) -> tuple[list[SessionLoop], int]:
+                 have: list[SessionLoop], cfg: SlamConfig, radius_m: float,
+                 max_links: int = 2) -> tuple[list[SessionLoop], int]:
     """More loops where the sessions are now known to overlap: each keyframe of a placed
-    session that has no loop to another placed session yet, against that session's keyframe
-    nearest to it (within radius_m, positions T_ref_kf (K, 4, 4) per session from a first
-    solve), verified by the same gates from the pose the solve implies. Returns the new loops
-    and how many were verified."""
+    session with loops to fewer than max_links other placed sessions, against the nearest
+    keyframe of each other placed session it has no loop to (within radius_m, nearest first,
+    until it would have max_links; positions T_ref_kf (K, 4, 4) per session from a first
+    solve, one KD-tree over all of them), verified by the same gates from the pose the solve
+    implies. Returns the new loops and how many were verified."""
     vcfg = cfg.loop.verify
-    linked = {(lp.b, lp.query, lp.a) for lp in have} | {(lp.a, lp.match, lp.b) for lp in have}
+    links: dict[tuple[int, int], set[int]] = {}
+    for lp in have:
+        links.setdefault((lp.b, lp.query), set()).add(lp.a)
+        links.setdefault((lp.a, lp.match), set()).add(lp.b)
     by_index = {s.index: s for s in sessions if s.index in T_ref_kf}
+    owner = np.concatenate([np.full(int((s.map.counts > 0).sum()), s.index)
+                            for s in by_index.values()])
+    kf = np.concatenate([np.flatnonzero(s.map.counts > 0) for s in by_index.values()])
+    tree = cKDTree(np.concatenate([T_ref_kf[s.index][s.map.counts > 0, :3, 3]
+                                   for s in by_index.values()]))
+    n_other = len(by_index) - 1
     new: list[SessionLoop] = []
     verified = 0
     matches: dict[tuple[int, int], Side] = {}
     for sq in by_index.values():
-        for so in by_index.values():
-            if so.index == sq.index:
+        for k in np.flatnonzero(sq.map.counts > 0):
+            k = int(k)
+            mine = links.setdefault((sq.index, k), set())
+            want = min(max_links, n_other) - len(mine)
+            if want <= 0:
                 continue
-            P = T_ref_kf[so.index][:, :3, 3]
-            for k in np.flatnonzero(sq.map.counts > 0):
-                k = int(k)
-                if (sq.index, k, so.index) in linked:
+            # Enough neighbours to hold the nearest keyframe of every session wanted.
+            _, j = nearest_of_others(tree, owner, T_ref_kf[sq.index][k, :3, 3], sq.index,
+                                     8 * (want + len(mine)), radius_m)
+            tries = []
+            for o, m in zip(owner[j], kf[j]):
+                o, m = int(o), int(m)
+                if o in mine or any(o == t[0] for t in tries):
                     continue
-                d = np.linalg.norm(P - T_ref_kf[sq.index][k, :3, 3], axis=1)
-                d[so.map.counts == 0] = np.inf
-                m = int(np.argmin(d))
-                if d[m] > radius_m:
-                    continue
-                if (so.index, m) not in matches:
-                    matches[(so.index, m)] = match_side(
-                        so.map.submap(m, vcfg.submap_radius), vcfg)
-                init = np.linalg.inv(T_ref_kf[so.index][m]) @ T_ref_kf[sq.index][k]
+                tries.append((o, m))
+                if len(tries) == want:
+                    break
+            for o, m in tries:
+                so = by_index[o]
+                if (o, m) not in matches:
+                    matches[(o, m)] = match_side(so.map.submap(m, vcfg.submap_radius), vcfg)
+                init = np.linalg.inv(T_ref_kf[o][m]) @ T_ref_kf[sq.index][k]
                 verified += 1
                 res = verify(LoopCandidate(k, m, np.nan, 0.0),
                              sq.map.keyframe(k).points.astype(np.float64),
-                             matches[(so.index, m)], vcfg, T_match_query_init=init)
+                             matches[(o, m)], vcfg, T_match_query_init=init)
                 if res.accepted:
                     c = res.constraint
-                    new.append(SessionLoop(so.index, m, sq.index, k, c.T_match_query,
+                    new.append(SessionLoop(o, m, sq.index, k, c.T_match_query,
                                            c.information, c.fitness, c.rmse_m, np.nan))
-                    linked |= {(sq.index, k, so.index), (so.index, m, sq.index)}
+                    mine.add(o)
+                    links.setdefault((o, m), set()).add(sq.index)
     log.info("guided search: %d of %d verified accepted", len(new), verified)
     return new, verified
-

@@ -1,15 +1,18 @@
 """Moving things in the merged map: points that other scans of their session saw through.
 
 A keyframe's point is tested against the range images (lidar_slam.merge.changes) of the other
-keyframes of its own session (the nearest max_keyframes within reach_m): they *see* it (a
-return within margin_m of it in its direction) or *see through* it (a return more than
-margin_m beyond it). A point seen through at least min_votes times and more than twice as
-often as seen is moving: there in one scan (or the few next to it, for something slow), gone
-from that place in the others. Between sessions that is a change (merge.changes), not this.
-Most of what one keyframe alone holds is static all the same (seen from one place only, far
-away, behind something) and stays: nothing saw through it. Moving points are left out of the
-merged map's clouds and of change detection. Cost: one range-image test per keyframe and
-neighbour, linear in keyframes.
+keyframes of its own session that were near the point (the max_keyframes nearest to its cell,
+within reach_m of it: merge.changes.place_votes): they *see* it (a return within margin_m of
+it in its direction) or *see through* it (a return more than margin_m beyond it). What a
+keyframe says about a point depends on how far it was from the point, not from the keyframe
+that saw it: a car passing the sensor is seen from afar on the approach and seen through by
+the keyframes that pass the place once it has gone, which may be far from the first. A point
+seen through at least min_votes times and more than twice as often as seen is moving: there
+in one scan (or the few next to it, for something slow), gone from that place in the others.
+Between sessions that is a change (merge.changes), not this. Most of what one keyframe alone
+holds is static all the same (seen from one place only, far away, behind something) and
+stays: nothing saw through it. Moving points are left out of the merged map's clouds and of
+change detection. Cost: max_keyframes range-image tests per point, linear in keyframes.
 """
 
 from __future__ import annotations
@@ -19,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar_slam.geometry import inverse, transform_points
-from lidar_slam.merge.changes import _RangeImage
+from lidar_slam.geometry import transform_points
+from lidar_slam.merge.changes import place_votes
 from lidar_slam.merge.session import Session
 
 log = logging.getLogger(__name__)
@@ -29,13 +32,14 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class MovingOptions:
     """Votes needed, the see-through margin (m), the range images' bin (deg), a keyframe's
-    reach (m) and how many of the nearest keyframes within it vote."""
+    reach (m) and how many of the keyframes nearest to a point's cell (of cell_m, m) vote."""
 
     min_votes: int = 3
     margin_m: float = 0.6
     bin_deg: float = 3.0
     reach_m: float = 15.0
     max_keyframes: int = 60  # the nearest keyframes within reach that vote
+    cell_m: float = 2.5
 
 
 def moving_points(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
@@ -48,24 +52,19 @@ def moving_points(sessions: list[Session], T_merged_kf: dict[int, np.ndarray],
         if s.index not in T_merged_kf:
             continue
         T = T_merged_kf[s.index]
-        images: dict[int, _RangeImage] = {}
-        for k in range(len(s)):
-            p = transform_points(T[k], s.map.keyframe(k).points.astype(np.float64))
-            through = np.zeros(len(p), dtype=np.int64)
-            seen = np.zeros(len(p), dtype=np.int64)
-            dist = np.linalg.norm(T[:, :3, 3] - T[k, :3, 3], axis=1)
-            near = [j for j in np.argsort(dist) if j != k and dist[j] < opts.reach_m
-                    and s.map.counts[j]][:opts.max_keyframes]
-            for j in near:
-                if j not in images:
-                    images[j] = _RangeImage(s.map.keyframe(j).points.astype(np.float64),
-                                            opts.bin_deg)
-                t, v = images[j].votes(transform_points(inverse(T[j]), p), opts.margin_m)
-                through += t
-                seen += v
-            out[(s.index, k)] = (through >= opts.min_votes) & (through > 2 * seen)
-            n_moving += int(out[(s.index, k)].sum())
-            n_points += len(p)
+        clouds = [s.map.keyframe(k).points.astype(np.float64) for k in range(len(s))]
+        points = np.concatenate([transform_points(T[k], c) for k, c in enumerate(clouds)])
+        owner = np.repeat(np.arange(len(s)), [len(c) for c in clouds])
+        voters = np.flatnonzero(s.map.counts > 0)
+        through, seen = place_votes(
+            points, owner, T[voters, :3, 3], voters, np.zeros(len(voters), dtype=np.int64), 1,
+            lambda v, c=clouds, i=voters, T=T: (c[i[v]], T[i[v]]), opts.max_keyframes,
+            opts.reach_m, opts.cell_m, opts.bin_deg, opts.margin_m)
+        moving = (through[:, 0] >= opts.min_votes) & (through[:, 0] > 2 * seen[:, 0])
+        for k, part in enumerate(np.split(moving, np.cumsum([len(c) for c in clouds])[:-1])):
+            out[(s.index, k)] = part
+        n_moving += int(moving.sum())
+        n_points += len(points)
     log.info("moving: %d of %d keyframe points seen through by the other keyframes of their "
              "session", n_moving, n_points)
     return out

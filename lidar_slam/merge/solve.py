@@ -43,26 +43,29 @@ def implied(loop: SessionLoop, T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     return T_a[loop.match] @ loop.T_match_query @ inverse(T_b[loop.query])
 
 
-def consensus(loops: list[SessionLoop], T_a: np.ndarray, T_b: np.ndarray
-              ) -> tuple[np.ndarray | None, list[int]]:
-    """The T_a_b that the most loops agree on and the indices (into loops) of those that do."""
+def consensus(loops: list[SessionLoop], T_a: np.ndarray, T_b: np.ndarray,
+              chunk: int = 256) -> tuple[np.ndarray | None, list[int]]:
+    """The T_a_b that the most loops agree on and the indices (into loops) of those that do
+    (every loop's implied T_a_b against every other's at the other's query keyframe, in blocks
+    of chunk rows)."""
     if not loops:
         return None, []
-    offsets = [implied(lp, T_a, T_b) for lp in loops]
-    points = [T_b[lp.query][:3, 3] for lp in loops]
-    best: list[int] = []
-    centre = 0
-    for i, Ti in enumerate(offsets):
-        agree = []
-        for j, Tj in enumerate(offsets):
-            d = inverse(Ti) @ Tj
-            moved = np.linalg.norm(Ti[:3, :3] @ points[j] + Ti[:3, 3]
-                                   - Tj[:3, :3] @ points[j] - Tj[:3, 3])
-            if moved < CONSENSUS_M and rotation_angle_deg(d) < CONSENSUS_DEG:
-                agree.append(j)
-        if len(agree) > len(best):
-            best, centre = agree, i
-    return offsets[centre], best
+    offsets = np.stack([implied(lp, T_a, T_b) for lp in loops])
+    R, t = offsets[:, :3, :3], offsets[:, :3, 3]
+    points = np.stack([T_b[lp.query][:3, 3] for lp in loops])
+    own = np.einsum("jab,jb->ja", R, points) + t  # T_j at loop j's point
+    best, centre = np.zeros(0, dtype=np.int64), 0
+    for lo in range(0, len(loops), chunk):
+        Ri, ti = R[lo:lo + chunk], t[lo:lo + chunk]
+        moved = np.linalg.norm(np.einsum("iab,jb->ija", Ri, points) + ti[:, None, :]
+                               - own[None, :, :], axis=2)
+        turned = rotation_angle_deg(np.einsum("iab,jac->ijbc", Ri, R))
+        agree = (moved < CONSENSUS_M) & (turned < CONSENSUS_DEG)
+        counts = agree.sum(axis=1)
+        i = int(np.argmax(counts))
+        if counts[i] > len(best):
+            best, centre = np.flatnonzero(agree[i]), lo + i
+    return offsets[centre], best.tolist()
 
 
 @dataclass
