@@ -251,7 +251,7 @@ def simulate_sessions(out_dir: str | Path, n_sessions: int, motion: str, world_k
             traj = car_motion(path, site, session_seed, duration_s, sensor.mount_height_m)
             text = f"A drive round the {site.kind} loop (session {i}, seed {seed}).\n"
         else:
-            walk = handheld_motion(path, site.ground, session_seed, duration_s)
+            walk = _handheld_walk(path, site.ground, session_seed, duration_s)
             traj = walk.trajectory
             text = (f"A handheld walk round the {site.kind} loop (session {i}, seed {seed}): "
                     f"{walk.stats.distance_m:.0f} m.\n")
@@ -280,6 +280,21 @@ def simulate_sessions(out_dir: str | Path, n_sessions: int, motion: str, world_k
                        for c in changes]}
     write_text_atomic(out / CHANGES_FILE, json.dumps(doc, indent=1) + "\n")
     return SessionsSummary(n_scans, len(changes), time.perf_counter() - t0)
+
+
+WALK_DRAWS = 8  # random walks drawn for a session before giving up
+
+
+def _handheld_walk(path, ground, session_seed: int, duration_s: float):
+    """A hand-held walk along path: handheld_motion's for session_seed, or, when its random
+    bursts cannot be kept within the motion limits (a long walk draws many), the first of
+    session_seed + 100 k (k = 1 .. WALK_DRAWS - 1) that can; the same seed, the same walk."""
+    for k in range(WALK_DRAWS):
+        try:
+            return handheld_motion(path, ground, session_seed + 100 * k, duration_s)
+        except ValueError:
+            if k == WALK_DRAWS - 1:
+                raise
 
 
 def read_changes(path: str | Path) -> list[Change]:
