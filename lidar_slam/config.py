@@ -93,10 +93,11 @@ class OdometryConfig(_Section):
     # fall by more than refine_evidence_z standard errors of their mean change (a one-sided
     # paired test); else kiss-icp's pose stands. Checked first on one Gauss-Newton step fitted
     # on the held-out points themselves: when even that is not significant, the ICP is skipped.
-    # "with_imu" (the default): on when the run's IMU is used, off lidar only (every slow scan
-    # refined). Decided on the bank (docs/bank.md, Decisions, 2026-12-04): with the IMU it
-    # halved the hand-held walks' ATE (median 0.033 -> 0.034 m over the 15 rows, worst 0.123 ->
-    # 0.103 m), lidar only it lost the median (0.120 -> 0.139 m) and the loop precision.
+    # "with_imu" (the default): asked on every slow scan the IMU predicted; lidar only every
+    # slow scan is refined. Decided on the bank (docs/bank.md, Decisions, 2026-12-04): with the
+    # IMU ATE median 0.033 -> 0.022 m and worst 0.123 -> 0.117 m over the 15 rows against
+    # refining every slow scan; lidar only the evidence lost the median (0.120 -> 0.139 m) and
+    # the loop precision.
     refine_evidence: bool | Literal["with_imu"] = "with_imu"
     refine_evidence_z: Positive = 2.0
     # Failure (lidar_slam.frontend.failure): failure_scans registered scans in a row with under
