@@ -246,6 +246,12 @@ class BackendConfig(_Section):
     # docs/bank.md: ATE median 0.050 -> 0.033 m, car07-os0 0.106 -> 0.073 m). The lidar-only
     # pose graph has no such check and keeps the 0.1 deg.
     inertial_odom_min_rot_sigma_deg: Positive = 0.02
+    # The odometry in the solve with the IMU as a drift state (the pose of the odometry's world,
+    # a random walk) plus white pose noise, split per run from the odometry edges' residuals
+    # (backend.imu_gnss_solve.odometry_white_fractions), instead of a chain of edges whose
+    # errors all accumulate: a scan-to-map odometry's error mostly does not, and the chain let
+    # the IMU bend it (final worse than the odometry on 4 of 15 bank rows; docs/bank.md).
+    odometry_drift_state: bool = True
 
 
 class LoopConfig(_Section):

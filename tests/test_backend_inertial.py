@@ -118,6 +118,67 @@ def test_imu_factors_take_out_part_of_a_clean_runs_drift(drive):
     assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
 
 
+def white_odometry(drive: Drive, seed: int) -> Drive:
+    """The drive with a scan-to-map odometry's error instead of drift: every frame off the
+    truth by its own white pose noise (0.07 deg, 7 mm per axis), nothing accumulating."""
+    rng = np.random.default_rng([seed, 7])
+    true_odom = inverse(drive.T_enu_world) @ drive.truth
+    noise = np.tile(np.eye(4), (len(true_odom), 1, 1))
+    for n in noise[1:]:
+        n[:3, :3] = matrix_from_rotvec(rng.normal(0.0, np.radians(0.07), 3))
+        n[:3, 3] = rng.normal(0.0, 0.007, 3)
+    drive.frame_odom = true_odom @ noise
+    drive.kf_odom = drive.frame_odom[drive.kf_frames]
+    drive.T_world_kf = {k: T for k, T in enumerate(drive.kf_odom)}
+    info = drive.edges[0].information
+    drive.edges = [BetweenFactor(k - 1, k, inverse(drive.kf_odom[k - 1]) @ drive.kf_odom[k], info)
+                   for k in range(1, len(drive.kf_frames))]
+    return drive
+
+
+def test_the_white_fraction_tells_a_scan_to_map_odometry_from_a_drifting_one():
+    white, drifting = white_odometry(Drive(seed=1), 1), Drive(seed=1)
+    for d in (white, drifting):  # the residuals at the truth (in the run's world)
+        truth = inverse(d.T_enu_world) @ d.truth[d.kf_frames]
+        d.fractions = solver.odometry_white_fractions(d.edges, dict(enumerate(truth)))
+    # measured: white 0.95 / 0.95 (the cap: rho -0.5), drifting 0.13 / 0.05 (rho ~ 0)
+    assert min(white.fractions) > 0.8 and max(drifting.fractions) < 0.25, (
+        white.fractions, drifting.fractions)
+
+
+def test_the_imu_does_not_bend_an_odometry_whose_error_does_not_accumulate():
+    """A chain of edges says the odometry's error accumulates: there the IMU's velocity bends a
+    white odometry into 10-20 times its error. The drift state keeps it."""
+    d = white_odometry(Drive(seed=1), 1)
+    truth = (inverse(d.T_enu_world) @ d.truth)[d.kf_frames]
+    ates = {}
+    for drift_state in (False, True):
+        cfg = d.cfg.model_copy(update={"backend": d.cfg.backend.model_copy(
+            update={"odometry_drift_state": drift_state})})
+        out = solver.solve(cfg, d.T_world_kf, d.edges, d.trajectory(), d.imu, None)
+        est = np.stack([out.kf_poses[k] for k in range(len(truth))])
+        ates[drift_state] = metrics.ate(est, truth).rmse_m
+        assert ("odometry_white_fraction" in out.summary["imu"]) == drift_state
+    odometry = metrics.ate(d.kf_odom, truth).rmse_m
+    # measured: odometry 0.0115 m, chain 0.241 m, drift state 0.0157 m (white 0.95 / 0.83)
+    assert ates[True] < 2.0 * odometry and ates[False] > 5.0 * ates[True], (odometry, ates)
+
+
+def test_a_drift_state_with_consistent_edges_keeps_the_odometry_poses():
+    from lidar_slam.backend import inertial_graph
+
+    d = Drive(seconds=8.0)
+    poses = {k: T for k, T in d.T_world_kf.items()}
+    cov = np.diag([1e-6] * 3 + [1e-6] * 3)
+    for white in ((0.01, 0.01), (0.5, 0.9), (0.95, 0.2)):
+        sol = inertial_graph.solve(poses, {}, d.edges, [], [], poses[0], cov,
+                                   solver.BIAS_SIGMA, 3.0, 20, 1e-9, covariances=True,
+                                   drift=white)
+        for k, T in poses.items():
+            np.testing.assert_allclose(sol.poses[k], T, atol=1e-6)
+        assert np.all(np.linalg.eigvalsh(sol.covariances[len(poses) - 1]) > 0)
+
+
 @pytest.mark.parametrize("with_imu", [True, False])
 def test_a_40_m_multipath_jump_is_rejected_and_reported(drive, with_imu):
     pytest.importorskip("pyproj")

@@ -72,7 +72,16 @@ def _ate(est: np.ndarray, gt: np.ndarray) -> float:
     return float(np.sqrt((err ** 2).sum(axis=1).mean()))
 
 
+def _fields(model) -> dict:
+    """A pydantic model's stored values, nested: a config pickled by an older lidar_slam lacks
+    the fields added since (validated again, they take their defaults)."""
+    from pydantic import BaseModel
+
+    return {k: _fields(v) if isinstance(v, BaseModel) else v for k, v in vars(model).items()}
+
+
 def _override(cfg, settings: list[str]):
+    cfg = type(cfg).model_validate(_fields(cfg))
     for item in settings:
         key, value = item.split("=", 1)
         section, name = key.split(".", 1)

@@ -281,6 +281,36 @@ def odometry_variance(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
             max(1.0, float(np.mean(r_trans)) / 3.0))
 
 
+WHITE_FRACTION_MAX = 0.95  # of an edge's covariance: some walk always stays (the local map moves)
+WHITE_FRACTION_MIN = 0.01  # a drift state with less is the chain (and ill-conditioned)
+
+
+def odometry_white_fractions(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
+                             ) -> tuple[float, float]:
+    """How much of the odometry edges' error is white pose noise rather than drift (rotation,
+    translation; 0..WHITE_FRACTION_MAX), from their residuals at a solution with the IMU: a
+    white pose error e_k in X_k = F O_k e_k makes consecutive edges' errors (e_j - e_i) anti-
+    correlated, lag-1 autocorrelation -w/2 for a white fraction w of the edge's variance, while
+    drift leaves them independent. So w = -2 rho, rho over consecutive edges' residuals (each
+    axis normalised by the edge's own sigma); rho >= 0 (an odometry that drifts) gives 0."""
+    chain = sorted((e for e in edges if not e.is_loop), key=lambda e: e.i)
+    pairs = [(a, b) for a, b in zip(chain, chain[1:]) if a.j == b.i]
+    if not pairs:
+        return 0.0, 0.0
+    normed = {}
+    for e in chain:
+        err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
+        normed[e.i] = err / np.sqrt(np.diag(np.linalg.inv(e.information)))
+    r = np.array([normed[a.i] for a, _ in pairs])
+    r_next = np.array([normed[b.i] for _, b in pairs])
+    out = []
+    for block in (slice(0, 3), slice(3, 6)):
+        den = float((r[:, block] ** 2).sum() + (r_next[:, block] ** 2).sum()) / 2.0
+        rho = float((r[:, block] * r_next[:, block]).sum()) / den if den > 0 else 0.0
+        out.append(float(np.clip(-2.0 * rho, 0.0, WHITE_FRACTION_MAX)))
+    return out[0], out[1]
+
+
 def _scaled_odometry(edges: list[BetweenFactor], factors: tuple[float, float]
                      ) -> list[BetweenFactor]:
     """The odometry edges with their rotation / translation covariance blocks scaled by the
@@ -358,6 +388,8 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     sigma_deg = cfg.imu.T_lidar_imu_sigma_deg
     mount_sigma = None if not links or sigma_deg is None else float(np.radians(sigma_deg))
 
+    drift = None  # white fractions of the odometry's drift state, once known
+
     def run(used: np.ndarray) -> inertial_graph.InertialSolution:
         factors = [] if tied is None else [
             inertial_graph.GnssFactor(k, tied.enu_m[f], Cn_inv[k][:3, :3] @ tied.arm_kf_m[f]
@@ -366,7 +398,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         return inertial_graph.solve(poses, velocities, imu_edges, links, factors,
                                     prior_mean, prior_cov, BIAS_SIGMA, GNSS_HUBER_K,
                                     cfg.backend.max_iterations, RELATIVE_TOL,
-                                    mount_sigma_rad=mount_sigma)
+                                    mount_sigma_rad=mount_sigma, drift=drift)
 
     def lidar_poses(sol: inertial_graph.InertialSolution) -> dict[int, np.ndarray]:
         D_inv = np.eye(4) if sol.mount_correction is None else inverse(sol.mount_correction)
@@ -375,10 +407,17 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     used = alignment.inlier.copy() if tied is not None else np.zeros(0, dtype=bool)
     sol = run(used)
     if links:  # the odometry's own weights, checked against the IMU (see odometry_variance)
-        factors = odometry_variance(_mounted(imu_edges, sol.mount_correction), sol.poses)
+        mounted = _mounted(imu_edges, sol.mount_correction)
+        factors = odometry_variance(mounted, sol.poses)
         summary["imu"]["odometry_variance_factor"] = [round(f, 3) for f in factors]
-        if max(factors) > 1.0:
-            imu_edges = _scaled_odometry(imu_edges, factors)
+        if cfg.backend.odometry_drift_state:
+            white = odometry_white_fractions(mounted, sol.poses)
+            summary["imu"]["odometry_white_fraction"] = [round(w, 3) for w in white]
+            if max(white) > 0.0:
+                drift = tuple(max(w, WHITE_FRACTION_MIN) for w in white)
+        if max(factors) > 1.0 or drift is not None:
+            if max(factors) > 1.0:
+                imu_edges = _scaled_odometry(imu_edges, factors)
             poses = sol.poses
             velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
             sol = run(used)

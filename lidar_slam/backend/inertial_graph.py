@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, R, V, X
+from gtsam.symbol_shorthand import B, F, R, V, X
 
 from lidar_slam.backend.factors import BetweenFactor
 
@@ -73,12 +73,15 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
           edges: list[BetweenFactor], links: list[ImuLink], gnss: list[GnssFactor],
           prior_pose: np.ndarray, prior_covariance: np.ndarray, bias_sigma: np.ndarray,
           gnss_huber_k: float, max_iterations: int, relative_error_tol: float,
-          covariances: bool = True, mount_sigma_rad: float | None = None) -> InertialSolution:
+          covariances: bool = True, mount_sigma_rad: float | None = None,
+          drift: tuple[float, float] | None = None) -> InertialSolution:
     """LM from the initial poses (T_S_node) and velocities (keyframes with IMU states), biases
     zero; the first keyframe's pose has a prior (mean, 6x6 covariance in its frame) and the first
     bias of every chain of IMU links a zero-mean prior (bias_sigma, 6: accelerometer then gyro).
     mount_sigma_rad: the IMU's mounting rotation is refined too (a rotation of the IMU frame
     the edges were moved into, zero-mean prior of this sigma per axis; see mount_edge).
+    drift: the odometry edges as a drift state instead of a chain (odometry_as_drift), with
+    these white fractions (rotation, translation) of each edge's covariance.
     """
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -88,6 +91,12 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
     graph.add(gtsam.PriorFactorPose3(X(first), gtsam.Pose3(prior_pose),
                                      gtsam.noiseModel.Gaussian.Covariance(prior_covariance)))
     noises: dict = {}
+    if drift is not None:
+        odometry = [e for e in edges if not e.is_loop]
+        edges = [e for e in edges if e.is_loop]
+        for factor in odometry_as_drift(odometry, poses, values, drift,
+                                        mount=mount_sigma_rad is not None):
+            graph.add(factor)
     for e in edges:
         key = (id(e.information), e.robust_k)
         if key not in noises:
@@ -143,12 +152,57 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
 _SELECT_ROTATION = np.vstack([np.eye(3), np.zeros((3, 3))])  # d Pose3(R, 0) / d R (6x3)
 
 
-def mount_edge(e: BetweenFactor, noise) -> gtsam.CustomFactor:
+def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
+                      values: gtsam.Values, white: tuple[float, float], mount: bool = False
+                      ) -> list:
+    """The odometry edges (a chain i -> j, sorted by i) as a drift state: per keyframe k a pose
+    F(k) = T_S_odom, where the odometry's own world lies, and the odometry's pose O_k (the
+    edges composed from the start of their chain) measured from it, X_k = F_k O_k, with white
+    pose noise (BetweenFactorPose3(F_k, X_k, O_k)), while F is a random walk
+    (BetweenFactorPose3(F_i, F_j, identity)). Each edge's covariance C is split: the white
+    fractions w = white (rotation, translation) S C S / 2 at each end (S = diag(sqrt(w))),
+    the rest (1 - w) into the walk, moved into F's frame by Ad(O_j). w -> 0 is the chain; a
+    scan-to-map odometry's error, bounded while its local map lasts, is mostly white, and a
+    chain that makes it a random walk lets the IMU bend it (docs/bank.md, "A drift state").
+    Both Huber (the edge's robust_k). Inserts F's initial values (X_k O_k^-1) into values.
+    mount: the nodes' IMU is turned by MOUNT (see mount_edge), so is each O_k."""
+    w_rot, w_trans = white
+    S_white = np.diag(np.sqrt([w_rot] * 3 + [w_trans] * 3))
+    S_walk = np.diag(np.sqrt([1.0 - w_rot] * 3 + [1.0 - w_trans] * 3))
+    odom: dict[int, np.ndarray] = {}
+    out: list = []
+
+    def white_factor(k: int, noise):
+        if mount:
+            return mount_edge(BetweenFactor(k, k, odom[k], np.eye(6)), noise, (F(k), X(k)))
+        return gtsam.BetweenFactorPose3(F(k), X(k), gtsam.Pose3(odom[k]), noise)
+
+    for e in sorted(edges, key=lambda e: e.i):
+        C = np.linalg.inv(e.information)
+        white_noise = _noise(np.linalg.inv(S_white @ C @ S_white / 2.0), e.robust_k)
+        if e.i not in odom:  # the start of a chain: its own drift state
+            odom[e.i] = np.eye(4)
+            values.insert(F(e.i), gtsam.Pose3(poses[e.i]))
+            out.append(white_factor(e.i, white_noise))
+        odom[e.j] = odom[e.i] @ e.T_i_j
+        values.insert(F(e.j), gtsam.Pose3(poses[e.j] @ np.linalg.inv(odom[e.j])))
+        out.append(white_factor(e.j, white_noise))
+        Ad = adjoint(odom[e.j])
+        walk = Ad @ (S_walk @ C @ S_walk) @ Ad.T
+        out.append(gtsam.BetweenFactorPose3(F(e.i), F(e.j), gtsam.Pose3(),
+                                            _noise(np.linalg.inv(0.5 * (walk + walk.T)),
+                                                   e.robust_k)))
+    return out
+
+
+def mount_edge(e: BetweenFactor, noise, keys: tuple[int, int] | None = None
+               ) -> gtsam.CustomFactor:
     """The edge e (T_i_j between IMU frames at the mounting assumed) between nodes whose IMU is
     turned by D (the key MOUNT, T_imu_imu'): it measures D^-1 T_i_j D. Error as gtsam's
-    BetweenFactorPose3 (Logmap of measured^-1 X_i^-1 X_j), Jacobians by gtsam's own."""
+    BetweenFactorPose3 (Logmap of measured^-1 X_i^-1 X_j), Jacobians by gtsam's own.
+    keys: the two gtsam keys (default X(e.i), X(e.j))."""
     Z = gtsam.Pose3(e.T_i_j)
-    ki, kj = X(e.i), X(e.j)
+    ki, kj = keys if keys is not None else (X(e.i), X(e.j))
 
     def error(this, values, H):
         Hi, Hj, Ha, Hb, Hz, Hm1, Hm2, He1, He2, Hl = (np.zeros((6, 6), order="F")
