@@ -179,6 +179,40 @@ def test_a_drift_state_with_consistent_edges_keeps_the_odometry_poses():
         assert np.all(np.linalg.eigvalsh(sol.covariances[len(poses) - 1]) > 0)
 
 
+def test_an_odometry_reset_is_a_jump_of_the_drift_not_noise_of_the_keyframe_after_it():
+    """Keyframes 1 m apart on a line; the edge 10 -> 11 crosses an odometry reset: measured 1 m
+    too long, its covariance grown by kiss-icp's threshold (1 m). A position fix pulls keyframe
+    11 by 0.3 m. Keyframe 11 keeps its 1 cm edge to 12 (its white noise is its own, not the
+    reset's): the fix moves the segment after the reset, not keyframe 11 alone."""
+    from lidar_slam.backend import inertial_graph
+    from lidar_slam.geometry import make_pose
+
+    n = 20
+    truth = {k: make_pose(np.eye(3), np.array([float(k), 0.0, 0.0])) for k in range(n)}
+    info = sigmas_to_information(0.1, 0.01)
+    reset = np.linalg.inv(np.linalg.inv(info) + np.diag([0.0] * 3 + [1.0] * 3))
+    edges = []
+    for k in range(n - 1):
+        T = inverse(truth[k]) @ truth[k + 1]
+        if k == 10:
+            T = T @ make_pose(np.eye(3), np.array([1.0, 0.0, 0.0]))
+        edges.append(BetweenFactor(k, k + 1, T, reset if k == 10 else info, 1.345))
+    odom = {0: truth[0]}
+    for e in edges:
+        odom[e.j] = odom[e.i] @ e.T_i_j
+    fixes = [inertial_graph.GnssFactor(k, truth[k][:3, 3] + [0.0, dy, 0.0], np.zeros(3),
+                                       np.full(3, sigma))
+             for k, dy, sigma in ((n - 1, 0.0, 0.01), (11, 0.3, 0.1))]
+    cov = np.diag([1e-8] * 6)
+    sol = inertial_graph.solve(odom, {}, edges, [], fixes, truth[0], cov, solver.BIAS_SIGMA,
+                               3.0, 50, 1e-9, covariances=False, drift=(0.9, 0.9))
+    rel = inverse(sol.poses[11]) @ sol.poses[12]
+    # measured: 11 -> 12 off its edge by 1.6 mm (0.29 m when keyframe 11's white noise took
+    # the reset's covariance); the last keyframe within 2.8 mm of its fix
+    assert np.linalg.norm(rel[:3, 3] - edges[11].T_i_j[:3, 3]) < 0.005
+    assert np.linalg.norm(sol.poses[n - 1][:3, 3] - truth[n - 1][:3, 3]) < 0.01
+
+
 @pytest.mark.parametrize("with_imu", [True, False])
 def test_a_40_m_multipath_jump_is_rejected_and_reported(drive, with_imu):
     pytest.importorskip("pyproj")

@@ -152,6 +152,9 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
 _SELECT_ROTATION = np.vstack([np.eye(3), np.zeros((3, 3))])  # d Pose3(R, 0) / d R (6x3)
 
 
+WALK_MIN = 0.05  # of an edge's variance (per whitened direction) stays in the walk
+
+
 def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
                       values: gtsam.Values, white: tuple[float, float], mount: bool = False
                       ) -> list:
@@ -159,36 +162,52 @@ def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
     F(k) = T_S_odom, where the odometry's own world lies, and the odometry's pose O_k (the
     edges composed from the start of their chain) measured from it, X_k = F_k O_k, with white
     pose noise (BetweenFactorPose3(F_k, X_k, O_k)), while F is a random walk
-    (BetweenFactorPose3(F_i, F_j, identity)). Each edge's covariance C is split: the white
-    fractions w = white (rotation, translation) S C S / 2 at each end (S = diag(sqrt(w))),
-    the rest (1 - w) into the walk, moved into F's frame by Ad(O_j). w -> 0 is the chain; a
-    scan-to-map odometry's error, bounded while its local map lasts, is mostly white, and a
-    chain that makes it a random walk lets the IMU bend it (docs/bank.md, "A drift state").
-    Both Huber (the edge's robust_k). Inserts F's initial values (X_k O_k^-1) into values.
-    mount: the nodes' IMU is turned by MOUNT (see mount_edge), so is each O_k."""
-    w_rot, w_trans = white
-    S_white = np.diag(np.sqrt([w_rot] * 3 + [w_trans] * 3))
-    S_walk = np.diag(np.sqrt([1.0 - w_rot] * 3 + [1.0 - w_trans] * 3))
+    (BetweenFactorPose3(F_i, F_j, identity)). w -> 0 is the chain; a scan-to-map odometry's
+    error, bounded while its local map lasts, is mostly white, and a chain that makes it a
+    random walk lets the IMU bend it (docs/bank.md, "A drift state").
+
+    Each edge's covariance C_ij is split so that the edge keeps it: keyframe k's white noise is
+    W_k = S C_k S / 2 (S = diag(sqrt(white)): rotation, translation), C_k the surer (smaller
+    log-determinant) of the two edges at k, and the walk takes the rest, C_ij - W_i - W_j
+    (at least WALK_MIN of C_ij in every direction), moved into F's frame by Ad(O_j). So an
+    edge across an odometry reset (kiss-icp's threshold added to its covariance) is a jump of
+    the drift, not white noise of the keyframe after it. Both Huber (the edge's robust_k).
+    Inserts F's initial values (X_k O_k^-1) into values. mount: the nodes' IMU is turned by
+    MOUNT (see mount_edge), so is each O_k."""
+    S = np.diag(np.sqrt([white[0]] * 3 + [white[1]] * 3))
+    chain = sorted(edges, key=lambda e: e.i)
+    cov = [np.linalg.inv(e.information) for e in chain]
+    surest: dict[int, tuple[float, np.ndarray]] = {}
+    for e, C in zip(chain, cov):
+        logdet = float(np.linalg.slogdet(C)[1])
+        for k in (e.i, e.j):
+            if k not in surest or logdet < surest[k][0]:
+                surest[k] = (logdet, C)
+    W = {k: S @ C @ S / 2.0 for k, (_, C) in surest.items()}
     odom: dict[int, np.ndarray] = {}
     out: list = []
 
-    def white_factor(k: int, noise):
+    def white_factor(k: int, robust_k: float | None):
+        noise = _noise(np.linalg.inv(W[k]), robust_k)
         if mount:
             return mount_edge(BetweenFactor(k, k, odom[k], np.eye(6)), noise, (F(k), X(k)))
         return gtsam.BetweenFactorPose3(F(k), X(k), gtsam.Pose3(odom[k]), noise)
 
-    for e in sorted(edges, key=lambda e: e.i):
-        C = np.linalg.inv(e.information)
-        white_noise = _noise(np.linalg.inv(S_white @ C @ S_white / 2.0), e.robust_k)
+    for e, C in zip(chain, cov):
         if e.i not in odom:  # the start of a chain: its own drift state
             odom[e.i] = np.eye(4)
             values.insert(F(e.i), gtsam.Pose3(poses[e.i]))
-            out.append(white_factor(e.i, white_noise))
+            out.append(white_factor(e.i, e.robust_k))
         odom[e.j] = odom[e.i] @ e.T_i_j
         values.insert(F(e.j), gtsam.Pose3(poses[e.j] @ np.linalg.inv(odom[e.j])))
-        out.append(white_factor(e.j, white_noise))
+        out.append(white_factor(e.j, e.robust_k))
+        L = np.linalg.cholesky(C)
+        L_inv = np.linalg.inv(L)
+        rest = L_inv @ (C - W[e.i] - W[e.j]) @ L_inv.T  # in C's whitened frame
+        lam, U = np.linalg.eigh(0.5 * (rest + rest.T))
+        walk_c = L @ (U * np.maximum(lam, WALK_MIN)) @ U.T @ L.T
         Ad = adjoint(odom[e.j])
-        walk = Ad @ (S_walk @ C @ S_walk) @ Ad.T
+        walk = Ad @ walk_c @ Ad.T
         out.append(gtsam.BetweenFactorPose3(F(e.i), F(e.j), gtsam.Pose3(),
                                             _noise(np.linalg.inv(0.5 * (walk + walk.T)),
                                                    e.robust_k)))
