@@ -18,6 +18,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import weakref
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
@@ -56,10 +57,16 @@ def _warm() -> None:
 
 def _draw(path: str, poses: np.ndarray, map_ply: str | None) -> None:
     from lidar_slam.eval.evaluate import plot_run_top_view
-    from lidar_slam.loop.worker import _set_priority
 
-    _set_priority(os.getpid(), urgent=True)  # the run now waits for it
     plot_run_top_view(Path(path), poses, None if map_ply is None else Path(map_ply))
+
+
+def _end(pool: ProcessPoolExecutor) -> None:
+    """End a helper that drew nothing (it may still be importing at SCHED_IDLE, which on a
+    loaded machine would keep the run's exit waiting): killed, not waited for."""
+    for proc in list(pool._processes.values()):
+        proc.kill()  # (it ignores SIGTERM, as the loop worker)
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 class TopViewPainter:
@@ -68,6 +75,9 @@ class TopViewPainter:
 
     def __init__(self, pool: ProcessPoolExecutor | None):
         self._pool = pool
+        self._drew = False  # a picture was drawn by the helper: it is idle
+        # a run that ends by an exception: the helper goes with it
+        self._finalizer = None if pool is None else weakref.finalize(self, _end, pool)
 
     @classmethod
     def start(cls) -> TopViewPainter:
@@ -85,7 +95,7 @@ class TopViewPainter:
                 pool.submit(_warm)
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-        except (OSError, RuntimeError) as exc:
+        except OSError as exc:  # (a RuntimeError: a script without the __main__ guard)
             log.debug("top view drawn in the run's process: %s", exc)
             pool = None
         return cls(pool)
@@ -94,6 +104,13 @@ class TopViewPainter:
         """Start drawing plot_run_top_view(path, poses, map_ply); map_ply must be complete."""
         job = None
         if self._pool is not None:
+            # The run waits for it from now on: the odometry's priority (not SCHED_IDLE, which
+            # on a loaded machine would wait for an idle core), also for its imports if they
+            # are not done yet.
+            from lidar_slam.loop.worker import _set_priority
+
+            for pid in list(self._pool._processes):
+                _set_priority(pid, urgent=True)
             try:
                 job = self._pool.submit(_draw, str(path), np.asarray(poses),
                                         None if map_ply is None else str(map_ply))
@@ -107,6 +124,7 @@ class TopViewPainter:
         if isinstance(job, Future):
             try:
                 job.result()
+                self._drew = True
                 return
             except Exception as exc:  # the helper died or failed: the picture is still due
                 log.debug("top view helper failed (%s): drawn in the run's process", exc)
@@ -115,6 +133,12 @@ class TopViewPainter:
         plot_run_top_view(*args)
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
+        """End the helper: waited for after a picture (it is idle), else killed."""
+        if self._pool is None:
+            return
+        pool, self._pool = self._pool, None
+        self._finalizer.detach()
+        if self._drew:
+            pool.shutdown(wait=True)
+        else:
+            _end(pool)

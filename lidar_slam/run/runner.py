@@ -247,9 +247,9 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
     if meta is not None:
         identity["meta"] = str(Path(meta).resolve())
+    painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
     resuming = _resuming(out, identity, overwrite, resume)
     visualizer = open_viewer(viz, rrd)
-    painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
     t0 = time.perf_counter()
     stop = StopSignals()
     with stop:  # from here on, a signal stops the run after the scan in hand
