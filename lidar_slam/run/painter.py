@@ -133,12 +133,13 @@ class TopViewPainter:
         plot_run_top_view(*args)
 
     def close(self) -> None:
-        """End the helper: waited for after a picture (it is idle), else killed."""
+        """End the helper: after a picture (it is idle) it exits beside the run's last steps
+        (the interpreter's exit waits for it), else it is killed."""
         if self._pool is None:
             return
         pool, self._pool = self._pool, None
         self._finalizer.detach()
         if self._drew:
-            pool.shutdown(wait=True)
+            pool.shutdown(wait=False)
         else:
             _end(pool)
