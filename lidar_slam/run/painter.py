@@ -95,7 +95,9 @@ class TopViewPainter:
                 pool.submit(_warm)
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-        except OSError as exc:  # (a RuntimeError: a script without the __main__ guard)
+        # (AssertionError: inside a daemonic process; a RuntimeError, a script without the
+        # __main__ guard, is left to stop it, as the loop worker's does)
+        except (OSError, AssertionError) as exc:
             log.debug("top view drawn in the run's process: %s", exc)
             pool = None
         return cls(pool)
