@@ -63,10 +63,10 @@ def _draw(path: str, poses: np.ndarray, map_ply: str | None) -> None:
 
 def _end(pool: ProcessPoolExecutor) -> None:
     """End a helper that drew nothing (it may still be importing at SCHED_IDLE, which on a
-    loaded machine would keep the run's exit waiting): killed, not waited for."""
+    loaded machine would keep the run's exit waiting): killed, then its pool shut down."""
     for proc in list(pool._processes.values()):
         proc.kill()  # (it ignores SIGTERM, as the loop worker)
-    pool.shutdown(wait=False, cancel_futures=True)
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 class TopViewPainter:
@@ -135,13 +135,15 @@ class TopViewPainter:
         plot_run_top_view(*args)
 
     def close(self) -> None:
-        """End the helper: after a picture (it is idle) it exits beside the run's last steps
-        (the interpreter's exit waits for it), else it is killed."""
+        """End the helper: after a picture (it is idle) it is waited for, else killed. Never
+        left to the interpreter's exit: concurrent.futures' exit hook can race an executor
+        shut down without waiting ("Exception ignored in: <module 'threading'>", OSError on
+        its closed wake-up pipe; seen once in the full suite under load)."""
         if self._pool is None:
             return
         pool, self._pool = self._pool, None
         self._finalizer.detach()
         if self._drew:
-            pool.shutdown(wait=False)
+            pool.shutdown(wait=True)
         else:
             _end(pool)
