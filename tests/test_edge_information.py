@@ -120,6 +120,11 @@ def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_
     assert det.drift_d2(0, 19, turned, loop_info) > 1000.0
     shifted = T_odom @ make_pose(np.eye(3), [3.0, 0.0, 0.0])  # a look-alike one bay further
     assert det.drift_d2(0, 19, shifted, loop_info) > det._gate_d2
+    # the gate is chi-square's (6 dof) at loop.drift_gate_p, taken without importing
+    # scipy.stats into the worker: the same number
+    from scipy.stats import chi2
+
+    assert det._gate_d2 == float(chi2.isf(load_config().loop.drift_gate_p, 6))
     store.close()
 
 

@@ -221,6 +221,28 @@ def test_slow_scan_refinement_refused_when_its_target_pulls_it_off():
     assert ev.gain_m < 0 and not ev.proven(2.0), ev
 
 
+def test_plane_evidence_with_the_early_checks_residuals_equals_it_without():
+    """The refinement hands the held-out points' residuals at kiss-icp's pose from the early
+    check to the check after the ICP (one nearest-neighbour search less per slow scan): the
+    same evidence, bit for bit, for both checks."""
+    from lidar_slam.frontend.odometry import _plane_residuals, plane_evidence
+    from lidar_slam.geometry import matrix_from_rotvec
+    from lidar_slam.registration import PlaneTarget
+
+    rng = np.random.default_rng(2)
+    target, scan = _room(rng, 40000, 0.005), _room(rng, 6000, 0.01)
+    T_kiss = np.eye(4)
+    T_kiss[:3, :3] = matrix_from_rotvec(np.radians([0.0, 0.2, 0.5]))
+    T_kiss[:3, 3] = [0.08, -0.03, 0.02]
+    pt = PlaneTarget(target, 0.5, 20, 1.0)
+    held = scan[1::3]
+    at_kiss = _plane_residuals(pt, held, T_kiss, 1.0)
+    T_icp = pt.align(scan[::3], T_kiss, 1.0)
+    for T_other in (None, T_icp):
+        assert (plane_evidence(pt, held, T_kiss, T_other, 1.0, at_kiss)
+                == plane_evidence(pt, held, T_kiss, T_other, 1.0))
+
+
 def test_slow_scan_refinement_kept_when_it_mends_kiss_icps_pose():
     """kiss-icp's pose 8 cm and 0.5 deg off in a room the keyframes saw as it is: the plane
     ICP brings it back and the held-out points prove it; refined, counted."""

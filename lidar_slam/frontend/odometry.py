@@ -140,12 +140,16 @@ def _gauss_newton_step(r: np.ndarray, moved: np.ndarray, normal: np.ndarray,
 
 
 def plane_evidence(target: PlaneTarget, held: np.ndarray, T_kiss: np.ndarray,
-                   T_other: np.ndarray | None, max_m: float) -> PlaneEvidence:
+                   T_other: np.ndarray | None, max_m: float,
+                   at_kiss: tuple[np.ndarray, ...] | None = None) -> PlaneEvidence:
     """Whether T_other fits held-out points (N, 3) better than T_kiss against target. None:
     one Gauss-Newton step fitted on the held-out points (optimistic: the early check). The
     residual is truncated at 3 robust sigmas of kiss-icp's (1.4826 MAD of the matched ones),
-    so that a few points off a wall's edge cannot decide."""
-    signed, ok0, moved, normal = _plane_residuals(target, held, T_kiss, max_m)
+    so that a few points off a wall's edge cannot decide. at_kiss: _plane_residuals of the
+    same points at T_kiss, when already known (the early check's, reused after the ICP)."""
+    if at_kiss is None:
+        at_kiss = _plane_residuals(target, held, T_kiss, max_m)
+    signed, ok0, moved, normal = at_kiss
     r0 = np.abs(signed)
     if ok0.sum() < 6:
         return PlaneEvidence(0.0, 0.0, int(ok0.sum()))
@@ -237,11 +241,14 @@ class Odometry:
         self.last_evidence = None
         if len(source) < 3 or len(self._target) < 3:
             return T_world_points
+        at_kiss = None  # the held-out points' residuals at kiss-icp's pose, for both checks
         if held is not None:
             # Early: if even a Gauss-Newton step fitted on the held-out points themselves does
             # not improve them significantly, a fit on the other points will not: skip the ICP.
+            at_kiss = _plane_residuals(self._target, held, T_world_points,
+                                       o.refine_max_correspondence_m)
             hope = plane_evidence(self._target, held, T_world_points, None,
-                                  o.refine_max_correspondence_m)
+                                  o.refine_max_correspondence_m, at_kiss)
             if not hope.proven(o.refine_evidence_z):
                 self.last_evidence = hope
                 self.n_refine_skipped += 1
@@ -254,7 +261,7 @@ class Odometry:
             return T_world_points
         if held is not None:
             self.last_evidence = plane_evidence(self._target, held, T_world_points, T,
-                                                o.refine_max_correspondence_m)
+                                                o.refine_max_correspondence_m, at_kiss)
             if not self.last_evidence.proven(o.refine_evidence_z):
                 self.n_refine_unproven += 1
                 return T_world_points

@@ -126,8 +126,10 @@ class OdometryStream:
 
 
 def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: np.ndarray | None,
-              wall_s: float, extra: dict | None = None) -> dict:
-    """Write every output file; return the summary (also written as summary.json)."""
+              wall_s: float, extra: dict | None = None, painter=None) -> dict:
+    """Write every output file; return the summary (also written as summary.json). painter: a
+    lidar_slam.run.painter.TopViewPainter to draw top_view.png beside the other outputs, else
+    it is drawn here."""
     out_dir.mkdir(parents=True, exist_ok=True)
     dump_config(cfg, out_dir / "config.yaml")
     n = len(result.indices)
@@ -150,7 +152,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
                                           cfg.map.voxel_size_m)
         write_map_manifest(result.store, T_map_kf, cfg)
         # A picture for a user with no ground truth (and no rerun): as eval's top view.
-        plot_run_top_view(out_dir / "top_view.png", poses, out_dir / "map.ply")
+        if painter is None:
+            plot_run_top_view(out_dir / "top_view.png", poses, out_dir / "map.ply")
+        else:
+            drawing = painter.draw(out_dir / "top_view.png", poses, out_dir / "map.ply")
         if result.kf_covariances:
             write_covariances(out_dir / "covariances.csv", result)
         if result.geo is not None:
@@ -207,6 +212,8 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
         summary[key] = {**(summary.get(key) or {}), **entry}
     if result.gnss_fixes:
         write_gnss_fixes(out_dir / "gnss_fixes.csv", result.gnss_fixes)
+    if n and painter is not None:
+        painter.finish(drawing)
     write_atomic(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -231,6 +231,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     from lidar_slam.provenance import git_commit
     from lidar_slam.run import checkpoint
     from lidar_slam.run.outputs import write_run
+    from lidar_slam.run.painter import TopViewPainter
 
     cfg = load_config(config, overrides)
     source = open_source(data, topic=topic,
@@ -246,6 +247,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
     if meta is not None:
         identity["meta"] = str(Path(meta).resolve())
+    painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
     resuming = _resuming(out, identity, overwrite, resume)
     visualizer = open_viewer(viz, rrd)
     t0 = time.perf_counter()
@@ -286,7 +288,8 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                         "resumed_at_frame": done, "version": __version__,
                         "git_commit": git_commit()}
             summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
-                                extra={**status, **run_info})
+                                extra={**status, **run_info}, painter=painter)
+            painter.close()
             pipe.close()
             if end.internal_error:
                 write_text_atomic(out / "error_traceback.txt", end.internal_error)
