@@ -47,6 +47,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -73,6 +74,8 @@ MAX_ROTATION_SIGMA_DEG = 2.0
 # Pearson correlation of the rotation magnitudes at the offset below which the two streams are
 # not taken to be of the same motion (another sensor's IMU, a clock drifting within the window).
 MIN_CORRELATION = 0.8
+# The overlay `simulate` writes beside a sequence (sim.sequence.OVERLAY_FILE): the IMU's values.
+SIM_OVERLAY = "lidar_slam.yaml"
 N_PARAMETERS = 8  # rotation 3, scale 1, centre (bias) 3, offset 1
 JACKKNIFE_BLOCKS = 6  # stretches of the window for the confidence
 TRIM_FACTOR = 3.0  # intervals with a residual beyond this x the median are left out
@@ -540,6 +543,9 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
     carried = getattr(source, "sensor_streams", None)
     if why is not None and mount_auto and carried is not None and carried.T_lidar_imu is None:
         why += f" ({carried.reason('imu')})"  # a dataset that publishes no mounting says so
+    overlay = Path(getattr(source, "root", "")) / SIM_OVERLAY
+    if why is not None and overlay.is_file():  # `simulate` wrote the IMU's values beside it
+        why += f"; {overlay} gives them: --config {overlay}"
     if why is not None:
         log.warning("%s: IMU not used: %s; the run goes on lidar-only (imu.time_offset_s and "
                     "imu.T_lidar_imu in the config use it as given)", imu.source, why)

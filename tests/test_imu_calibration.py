@@ -213,3 +213,18 @@ def test_too_short_a_run_to_calibrate_goes_lidar_only_saying_why(walk, tmp_path,
     assert short["imu"]["used"] is False and "cannot be found from the data" in \
         short["imu"]["reason"]
     assert short["imu"]["calibration"]["window_scans"] == 60
+    assert "--config" not in short["imu"]["reason"]
+
+
+def test_a_refusal_names_the_overlay_simulate_wrote_beside_the_data(walk, tmp_path):
+    """A simulated sequence run without its lidar_slam.yaml: the calibration's refusal says
+    which file gives the IMU's values."""
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for item in walk[0].iterdir():
+        (seq / item.name).symlink_to(item)
+    (seq / "lidar_slam.yaml").write_text("imu:\n  time_offset_s: 0.1\n")
+    short = run(seq, tmp_path / "short")
+    assert short["imu"]["used"] is False
+    assert short["imu"]["reason"].endswith(f"{seq / 'lidar_slam.yaml'} gives them: --config "
+                                           f"{seq / 'lidar_slam.yaml'}"), short["imu"]["reason"]
