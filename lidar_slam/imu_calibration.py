@@ -543,8 +543,8 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
     carried = getattr(source, "sensor_streams", None)
     if why is not None and mount_auto and carried is not None and carried.T_lidar_imu is None:
         why += f" ({carried.reason('imu')})"  # a dataset that publishes no mounting says so
-    overlay = Path(getattr(source, "root", "")) / SIM_OVERLAY
-    if why is not None and overlay.is_file():  # `simulate` wrote the IMU's values beside it
+    overlay = _imu_overlay(getattr(source, "root", None))
+    if why is not None and overlay is not None:  # `simulate` wrote the IMU's values beside it
         why += f"; {overlay} gives them: --config {overlay}"
     if why is not None:
         log.warning("%s: IMU not used: %s; the run goes on lidar-only (imu.time_offset_s and "
@@ -567,6 +567,21 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
                                            "translation the config's, or 0)")
     summary = {**inertial.summary, "imu": {**imu_summary, "calibration": calibration}}
     return cfg, dataclasses.replace(inertial, imu=stream, summary=summary)
+
+
+def _imu_overlay(root) -> Path | None:
+    """The lidar_slam.yaml beside an input folder (what `simulate` writes) when it gives the
+    IMU's values (an `imu:` section), else None."""
+    import yaml
+
+    if root is None:
+        return None
+    path = Path(root) / SIM_OVERLAY
+    try:
+        doc = yaml.safe_load(path.read_text()) if path.is_file() else None
+    except (OSError, yaml.YAMLError):
+        return None
+    return path if isinstance(doc, dict) and isinstance(doc.get("imu"), dict) else None
 
 
 def _gyro_path(imu: ImuSamples) -> str:

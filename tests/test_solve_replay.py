@@ -31,3 +31,18 @@ def test_keyframe_ate_is_zero_for_a_rigid_copy_and_the_rmse_otherwise():
     noisy = gt.copy()
     noisy[:, :3, 3] += np.where(np.arange(50)[:, None] % 2 == 0, 0.1, -0.1) * np.array([0, 0, 1])
     assert abs(replay()._ate(noisy, gt) - 0.1) < 1e-3
+
+
+def test_settings_are_read_as_yaml_and_validated():
+    from lidar_slam.config import SlamConfig
+    from tools.solve_replay import _override
+
+    cfg = _override(SlamConfig(), ["backend.odometry_drift_state=false",
+                                   "imu.T_lidar_imu_sigma_deg=0.5", "backend.huber_k=2"])
+    assert cfg.backend.odometry_drift_state is False and cfg.imu.T_lidar_imu_sigma_deg == 0.5
+    assert cfg.backend.huber_k == 2.0
+    import pytest
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError):
+        _override(SlamConfig(), ["backend.huber_k=-1"])

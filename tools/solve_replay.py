@@ -73,22 +73,27 @@ def _ate(est: np.ndarray, gt: np.ndarray) -> float:
 
 
 def _fields(model) -> dict:
-    """A pydantic model's stored values, nested: a config pickled by an older lidar_slam lacks
-    the fields added since (validated again, they take their defaults)."""
+    """A pydantic model's stored values, nested, of the fields its class has now: a config
+    pickled by an older lidar_slam lacks the fields added since (validated again, they take
+    their defaults) and may hold some removed since (left out)."""
     from pydantic import BaseModel
 
-    return {k: _fields(v) if isinstance(v, BaseModel) else v for k, v in vars(model).items()}
+    names = type(model).model_fields
+    return {k: _fields(v) if isinstance(v, BaseModel) else v
+            for k, v in vars(model).items() if k in names}
 
 
 def _override(cfg, settings: list[str]):
-    cfg = type(cfg).model_validate(_fields(cfg))
+    """cfg with SECTION.KEY=VALUE settings, each VALUE read as YAML (false, 0.5, null, [1, 2])
+    and the whole validated again."""
+    import yaml
+
+    fields = _fields(cfg)
     for item in settings:
         key, value = item.split("=", 1)
         section, name = key.split(".", 1)
-        part = getattr(cfg, section)
-        cfg = cfg.model_copy(update={section: part.model_copy(
-            update={name: type(getattr(part, name))(value)})})
-    return cfg
+        fields[section][name] = yaml.safe_load(value)
+    return type(cfg).model_validate(fields)
 
 
 def replay(captures: Path, settings: list[str], root: Path, only: set[str]) -> None:

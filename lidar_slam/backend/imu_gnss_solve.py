@@ -285,24 +285,32 @@ WHITE_FRACTION_MAX = 0.95  # of an edge's covariance: some walk always stays (th
 WHITE_FRACTION_MIN = 0.01  # a drift state with less is the chain (and ill-conditioned)
 
 
+MIN_WHITE_PAIRS = 10  # consecutive edges needed to tell white noise from drift
+
+
 def odometry_white_fractions(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
                              ) -> tuple[float, float]:
     """How much of the odometry edges' error is white pose noise rather than drift (rotation,
-    translation; 0..WHITE_FRACTION_MAX), from their residuals at a solution with the IMU: a
-    white pose error e_k in X_k = F O_k e_k makes consecutive edges' errors (e_j - e_i) anti-
-    correlated, lag-1 autocorrelation -w/2 for a white fraction w of the edge's variance, while
-    drift leaves them independent. So w = -2 rho, rho over consecutive edges' residuals (each
-    axis normalised by the edge's own sigma); rho >= 0 (an odometry that drifts) gives 0."""
+    translation; 0..WHITE_FRACTION_MAX), estimated from their residuals at a solution with the
+    IMU: a white pose error w_j of keyframe j (X_j = F O_j Exp(w_j)) enters the edge i -> j as
+    +w_j and the edge j -> k as -Ad(T_jk^-1) w_j, so with the second edge's residual moved into
+    X_j's frame (Ad(T_jk)) consecutive residuals correlate at -w/2 for a white fraction w of the
+    edge's variance, while drift leaves them independent. So w = -2 rho, rho pooled over the
+    pairs, each axis normalised by the first edge's sigma; rho >= 0 (an odometry that drifts)
+    gives 0, and so do fewer than MIN_WHITE_PAIRS pairs. The residuals are those of a fitted
+    solution: the IMU takes out some of a drift's low frequencies, which leans rho negative
+    (docs/bank.md compares the estimate with the truth's on the bank)."""
     chain = sorted((e for e in edges if not e.is_loop), key=lambda e: e.i)
     pairs = [(a, b) for a, b in zip(chain, chain[1:]) if a.j == b.i]
-    if not pairs:
+    if len(pairs) < MIN_WHITE_PAIRS:
         return 0.0, 0.0
-    normed = {}
-    for e in chain:
-        err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
-        normed[e.i] = err / np.sqrt(np.diag(np.linalg.inv(e.information)))
-    r = np.array([normed[a.i] for a, _ in pairs])
-    r_next = np.array([normed[b.i] for _, b in pairs])
+    err = {id(e): gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j]) for e in chain}
+    r, r_next = [], []
+    for a, b in pairs:
+        sigma = np.sqrt(np.diag(np.linalg.inv(a.information)))
+        r.append(err[id(a)] / sigma)
+        r_next.append(inertial_graph.adjoint(b.T_i_j) @ err[id(b)] / sigma)
+    r, r_next = np.array(r), np.array(r_next)
     out = []
     for block in (slice(0, 3), slice(3, 6)):
         den = float((r[:, block] ** 2).sum() + (r_next[:, block] ** 2).sum()) / 2.0

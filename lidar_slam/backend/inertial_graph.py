@@ -1,5 +1,6 @@
 """The full keyframe graph with IMU and GNSS factors, in gtsam: pose X(k), velocity V(k) and bias
-B(k) per keyframe; the pose graph's odometry and loop edges, gtsam CombinedImuFactor between
+B(k) per keyframe; the pose graph's odometry (a chain of edges, or a drift state F(k) per
+keyframe: odometry_as_drift) and loop edges, gtsam CombinedImuFactor between
 consecutive keyframes (PreintegratedCombinedMeasurements from lidar_slam.imu), GPSFactorArm per
 GNSS fix (Huber-robust), a prior on the first pose and bias. Levenberg-Marquardt, then the
 poses' marginal covariances.
@@ -160,35 +161,43 @@ def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
                       ) -> list:
     """The odometry edges (a chain i -> j, sorted by i) as a drift state: per keyframe k a pose
     F(k) = T_S_odom, where the odometry's own world lies, and the odometry's pose O_k (the
-    edges composed from the start of their chain) measured from it, X_k = F_k O_k, with white
-    pose noise (BetweenFactorPose3(F_k, X_k, O_k)), while F is a random walk
+    edges composed from the start of their chain) measured from it, X_k = F_k O_k Exp(w_k),
+    with white pose noise w_k (BetweenFactorPose3(F_k, X_k, O_k)), while F is a random walk
     (BetweenFactorPose3(F_i, F_j, identity)). w -> 0 is the chain; a scan-to-map odometry's
     error, bounded while its local map lasts, is mostly white, and a chain that makes it a
     random walk lets the IMU bend it (docs/bank.md, "A drift state").
 
-    Each edge's covariance C_ij is split so that the edge keeps it: keyframe k's white noise is
-    W_k = S C_k S / 2 (S = diag(sqrt(white)): rotation, translation), C_k the surer (smaller
-    log-determinant) of the two edges at k, and the walk takes the rest, C_ij - W_i - W_j
-    (at least WALK_MIN of C_ij in every direction), moved into F's frame by Ad(O_j). So an
-    edge across an odometry reset (kiss-icp's threshold added to its covariance) is a jump of
-    the drift, not white noise of the keyframe after it. Both Huber (the edge's robust_k).
-    Inserts F's initial values (X_k O_k^-1) into values. mount: the nodes' IMU is turned by
-    MOUNT (see mount_edge), so is each O_k."""
+    Each edge's covariance C_ij (in X_j's frame) is split so that the edge keeps it: the edge's
+    error is -Ad(T_ji) w_i + w_j + Ad(O_j^-1) d (d the walk's step in F's frame), so keyframe
+    k's white noise W_k = S C_k S / 2 (S = diag(sqrt(white)): rotation, translation), C_k the
+    surer (smaller log-determinant) of the two edges at k moved into X_k's frame, and the walk
+    takes the rest, C_ij - Ad(T_ji) W_i Ad(T_ji)^T - W_j (at least WALK_MIN of C_ij in every
+    direction), moved into F's frame by Ad(O_j). So an edge across an odometry reset (kiss-icp's
+    threshold added to its covariance) is a jump of the drift, not white noise of the keyframe
+    after it. Both Huber (the edge's robust_k). Inserts F's initial values (X_k O_k^-1) into
+    values. mount: the nodes' IMU is turned by MOUNT (see mount_edge), so is each O_k."""
     S = np.diag(np.sqrt([white[0]] * 3 + [white[1]] * 3))
     chain = sorted(edges, key=lambda e: e.i)
+    seen: set[int] = set()
+    for e in chain:
+        if e.j <= e.i or e.j in seen:
+            raise ValueError(f"odometry edge {e.i} -> {e.j}: not a chain (each keyframe reached "
+                             "once, forwards)")
+        seen.add(e.j)
     cov = [np.linalg.inv(e.information) for e in chain]
     surest: dict[int, tuple[float, np.ndarray]] = {}
     for e, C in zip(chain, cov):
         logdet = float(np.linalg.slogdet(C)[1])
-        for k in (e.i, e.j):
+        Ad = adjoint(e.T_i_j)  # C in X_i's frame, for keyframe i
+        for k, C_k in ((e.i, Ad @ C @ Ad.T), (e.j, C)):
             if k not in surest or logdet < surest[k][0]:
-                surest[k] = (logdet, C)
+                surest[k] = (logdet, C_k)
     W = {k: S @ C @ S / 2.0 for k, (_, C) in surest.items()}
     odom: dict[int, np.ndarray] = {}
     out: list = []
 
     def white_factor(k: int, robust_k: float | None):
-        noise = _noise(np.linalg.inv(W[k]), robust_k)
+        noise = _noise(np.linalg.inv(0.5 * (W[k] + W[k].T)), robust_k)
         if mount:
             return mount_edge(BetweenFactor(k, k, odom[k], np.eye(6)), noise, (F(k), X(k)))
         return gtsam.BetweenFactorPose3(F(k), X(k), gtsam.Pose3(odom[k]), noise)
@@ -201,9 +210,10 @@ def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
         odom[e.j] = odom[e.i] @ e.T_i_j
         values.insert(F(e.j), gtsam.Pose3(poses[e.j] @ np.linalg.inv(odom[e.j])))
         out.append(white_factor(e.j, e.robust_k))
+        Ad_ji = adjoint(np.linalg.inv(e.T_i_j))
         L = np.linalg.cholesky(C)
         L_inv = np.linalg.inv(L)
-        rest = L_inv @ (C - W[e.i] - W[e.j]) @ L_inv.T  # in C's whitened frame
+        rest = L_inv @ (C - Ad_ji @ W[e.i] @ Ad_ji.T - W[e.j]) @ L_inv.T  # C's whitened frame
         lam, U = np.linalg.eigh(0.5 * (rest + rest.T))
         walk_c = L @ (U * np.maximum(lam, WALK_MIN)) @ U.T @ L.T
         Ad = adjoint(odom[e.j])
