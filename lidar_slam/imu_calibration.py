@@ -74,8 +74,6 @@ MAX_ROTATION_SIGMA_DEG = 2.0
 # Pearson correlation of the rotation magnitudes at the offset below which the two streams are
 # not taken to be of the same motion (another sensor's IMU, a clock drifting within the window).
 MIN_CORRELATION = 0.8
-# The overlay `simulate` writes beside a sequence (sim.sequence.OVERLAY_FILE): the IMU's values.
-SIM_OVERLAY = "lidar_slam.yaml"
 N_PARAMETERS = 8  # rotation 3, scale 1, centre (bias) 3, offset 1
 JACKKNIFE_BLOCKS = 6  # stretches of the window for the confidence
 TRIM_FACTOR = 3.0  # intervals with a residual beyond this x the median are left out
@@ -543,10 +541,10 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
     carried = getattr(source, "sensor_streams", None)
     if why is not None and mount_auto and carried is not None and carried.T_lidar_imu is None:
         why += f" ({carried.reason('imu')})"  # a dataset that publishes no mounting says so
-    overlay = _imu_overlay(getattr(source, "root", None))
-    if why is not None and overlay is not None:  # `simulate` wrote the IMU's values beside it
-        why += f"; {overlay} gives them: --config {overlay}"
     if why is not None:
+        overlay = _imu_overlay(getattr(source, "root", None))
+        if overlay is not None:  # `simulate` wrote the IMU's values beside the data
+            why += f"; {overlay} gives them: --config {overlay}"
         log.warning("%s: IMU not used: %s; the run goes on lidar-only (imu.time_offset_s and "
                     "imu.T_lidar_imu in the config use it as given)", imu.source, why)
         summary = {**inertial.summary, "imu": {"used": False, "source": imu.source,
@@ -574,9 +572,11 @@ def _imu_overlay(root) -> Path | None:
     IMU's values (an `imu:` section), else None."""
     import yaml
 
+    from lidar_slam.sim.sequence import OVERLAY_FILE
+
     if root is None:
         return None
-    path = Path(root) / SIM_OVERLAY
+    path = Path(root) / OVERLAY_FILE
     try:
         doc = yaml.safe_load(path.read_text()) if path.is_file() else None
     except (OSError, yaml.YAMLError):

@@ -283,8 +283,6 @@ def odometry_variance(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
 
 WHITE_FRACTION_MAX = 0.95  # of an edge's covariance: some walk always stays (the local map moves)
 WHITE_FRACTION_MIN = 0.01  # a drift state with less is the chain (and ill-conditioned)
-
-
 MIN_WHITE_PAIRS = 10  # consecutive edges needed to tell white noise from drift
 
 
@@ -424,8 +422,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
             if max(white) > 0.0:
                 drift = tuple(max(w, WHITE_FRACTION_MIN) for w in white)
         if max(factors) > 1.0 or drift is not None:
-            if max(factors) > 1.0:
-                imu_edges = _scaled_odometry(imu_edges, factors)
+            imu_edges = _scaled_odometry(imu_edges, factors)  # (factors of 1: the same values)
             poses = sol.poses
             velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
             sol = run(used)
