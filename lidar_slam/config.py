@@ -59,13 +59,15 @@ class OdometryConfig(_Section):
     min_motion_m: NonNegative = 0.1
     max_num_iterations: Count = 500
     convergence_criterion: Positive = 1e-4
-    # kiss-icp's TBB threads (0: every core). One by default: with more, its correspondence
-    # search and normal-equation sums run in a varying order, so two runs of the same input
-    # differ (a hand-held walk: 1.9 cm at the end; sim 07: 4e-13 m, then the loop verification
-    # and the final solve carry it further). kiss-icp sets TBB's process-wide limit from the
-    # first registration made in a process, which also bounds gtsam's TBB: the first Odometry
-    # of a process decides for all. Cost: docs/design.md (Determinism).
-    max_num_threads: NonNegativeInt = 1
+    # kiss-icp's TBB threads (0: every core). With more than one, its correspondence search and
+    # normal-equation sums run in a varying order (poses ~2e-15 apart, which a run's chaos
+    # carried to 1.9 cm on a hand-held walk); the odometry rounds kiss-icp's pose to 1e-6
+    # (frontend.odometry.POSE_QUANTUM), so two runs, and runs on 1 or 2 threads, write the same
+    # poses. kiss-icp sets TBB's process-wide limit from the first registration made in a
+    # process, which also bounds gtsam's TBB: the first Odometry of a process decides for all.
+    # Cost of one thread: 1.35x the wall time of a dense hand-held walk (docs/design.md,
+    # Determinism).
+    max_num_threads: NonNegativeInt = 0
     # Slow scans are refined after kiss-icp: a scan whose last motion is under refine_below_mps
     # (m/s) is registered again, from kiss-icp's pose, by point-to-plane ICP against the clouds
     # of the last refine_keyframes keyframes (matches up to refine_max_correspondence_m). Its

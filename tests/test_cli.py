@@ -427,7 +427,7 @@ def test_two_runs_write_identical_files(tmp_path):
     """The default config: two runs of the same input write the same bytes. Loop detection runs
     in a worker process; its results are applied at fixed keyframes, so runs do not depend on
     timing (sample_scans: loops accepted); kiss-icp runs on one thread (its TBB reductions sum in
-    a varying order: odometry.max_num_threads)."""
+    a varying order; the odometry rounds its pose: odometry.max_num_threads)."""
     for name in ("a", "b"):
         assert lidar_slam("run", SAMPLE, "--out", tmp_path / name).returncode == 0
     assert_same_run_folders(tmp_path / "a", tmp_path / "b")
@@ -444,7 +444,8 @@ def test_two_runs_write_identical_files(tmp_path):
 
 
 def test_two_runs_with_an_imu_write_identical_files(tmp_path):
-    """With an IMU (front-end smoother and the final inertial solve, gtsam) too."""
+    """With an IMU (front-end smoother and the final inertial solve, gtsam) too; and a run with
+    kiss-icp on one thread writes the same poses as the default's every core."""
     import dataclasses
 
     from lidar_slam.sim import SENSORS
@@ -461,6 +462,11 @@ def test_two_runs_with_an_imu_write_identical_files(tmp_path):
     assert_same_run_folders(tmp_path / "a", tmp_path / "b")
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["imu"]["used"] and summary["imu_frontend"]["scans_deskewed_by_imu"] > 10
+    one = tmp_path / "one.yaml"
+    one.write_text((walk / "lidar_slam.yaml").read_text() + "odometry:\n  max_num_threads: 1\n")
+    assert lidar_slam("run", walk, "--out", tmp_path / "one", "--config", one).returncode == 0
+    for name in ("poses_kitti.txt", "odometry_kitti.txt", "covariances.csv"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "a" / name).read_bytes()
 
 
 def test_resume_after_sigkill_matches_an_uninterrupted_run(tmp_path):

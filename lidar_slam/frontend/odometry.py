@@ -6,7 +6,7 @@ so kiss-icp's preprocessor runs with its deskew off (range crop only) and deskew
 exactly once;
 and the components are built from our config without kiss-icp's pydantic-settings layer, whose
 import alone costs ~50 ms of every run. tests/test_odometry.py checks the poses equal stock
-KissICP's on real scans.
+KissICP's on real scans (to POSE_QUANTUM).
 """
 
 from __future__ import annotations
@@ -29,6 +29,29 @@ from lidar_slam.geometry import (
     transform_points,
 )
 from lidar_slam.registration import PlaneTarget, voxel_centroids
+
+# kiss-icp's pose is rounded to this right after its alignment (rotation matrix entries, and
+# metres): 1 micrometre / microradian, 100 times below the step at which kiss-icp's ICP stops
+# (odometry.convergence_criterion). With more than one thread kiss-icp sums its normal equations
+# in a varying order and its poses differ by up to ~2e-15 between runs (a hand-held walk, 450
+# scans x 4 alignments each); a run's chaos carried that to 1.9 cm. Rounded, everything after
+# the alignment sees the same pose: two runs (and runs on 1 or 2 threads) agree unless one of a
+# pose's 12 numbers falls within ~2e-15 of a rounding boundary, about 12 x 4e-9 = 5e-8 per
+# scan (docs/design.md, Determinism).
+POSE_QUANTUM = 1e-6
+
+
+def quantised(T: np.ndarray) -> np.ndarray:
+    """T (4x4) rounded to POSE_QUANTUM: the rotation's entries, then the nearest rotation to
+    them (SVD; deterministic for the same input), and the translation's metres."""
+    q = POSE_QUANTUM
+    R = np.round(np.asarray(T[:3, :3]) / q) * q
+    U, _, Vt = np.linalg.svd(R)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    out = np.eye(4)
+    out[:3, :3] = U @ D @ Vt
+    out[:3, 3] = np.round(np.asarray(T[:3, 3]) / q) * q
+    return out
 
 
 def _vec(points: np.ndarray):
@@ -183,7 +206,10 @@ class Odometry:
                                               convergence_criterion=o.convergence_criterion,
                                               max_num_threads=o.max_num_threads)
         self._new_threshold()
-        # kiss-icp's range crop (C++, parallel) with its deskew switched off: ours runs before.
+        # kiss-icp's range crop with its deskew switched off: ours runs before. Its thread count
+        # is the registration's: kiss-icp's Registration and Preprocessor each set TBB's
+        # process-wide limit once, from the first one a process makes (a static global_control),
+        # and TBB takes the smaller: a one-thread crop kept the registration on one core.
         self._crop = kp._Preprocessor(cfg.data.max_range_m, cfg.data.min_range_m, False,
                                       o.max_num_threads)
         self.last_pose = np.eye(4)
@@ -299,6 +325,7 @@ class Odometry:
         new_pose = self._registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
+        new_pose = quantised(new_pose)
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
             evidence = mode is True or (mode == "with_imu" and self.imu and predicted)
