@@ -34,6 +34,8 @@ within SECOND_SEARCH_S, until the offset moves less than SETTLED_S (at most GYRO
 lidar-only odometry lags a fast turn (its deskew assumes the last interval's motion), which put
 the offset 2 to 16 ms off on 30 s walks and cost one 27 % of ATE; aided, within 1 ms
 (docs/benchmarks/2026-12-04-imu-calibration.md, with the cost).
+None is made when the rotation is needed, not found, and the magnitudes already agree
+(LAG_FREE_CORRELATION): no lag to take out, the motion hides the mounting.
 
 The rotation found is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg, set
 here to REFINE_SIGMA_FACTOR x its sigma; backend.inertial_graph.mount_edge): the odometry's
@@ -81,6 +83,13 @@ GYRO_PASSES = 3  # gyro-aided passes at most (calibrate), until the offset moves
 SETTLED_S = 0.001
 GYRO_KNOTS = 9  # knots of a sweep's gyro motion in that pass
 SECOND_SEARCH_S = 0.05  # the offset searched within this of the first pass's (s)
+# The gyro-aided passes take out the lidar-only odometry's lag in fast turns, which shows as
+# magnitudes that correlate below 1 (the three 30 s walks' first passes: 0.89-0.999, their
+# rotation sigma then 1.7 -> 0.17 deg on one). A first pass whose magnitudes correlate at least
+# this has no such error left: a rotation it could not find is the motion's (a drive turning
+# about one axis: 0.9998, sigma 5.2 deg, the same after three aided passes that cost 20 s), and
+# no pass is made.
+LAG_FREE_CORRELATION = 0.999
 # A rotation found here is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg),
 # with a prior of this x its sigma: the sigmas are honest to a factor of about two (the grid's
 # errors 0.23-0.37 deg for sigmas 0.15-0.39), and a prior too tight keeps the error
@@ -413,6 +422,14 @@ def _window_pass(source, cfg, start: int, count: int, window_s: float, on_interv
     return win
 
 
+def unobservable_rotation(est: Estimate, need_rotation: bool) -> bool:
+    """Whether the rotation est could not find is the motion's, not the odometry's: needed, not
+    found, and magnitudes that already agree (LAG_FREE_CORRELATION). Then the gyro-aided passes
+    cannot change the verdict and are not made."""
+    return bool(need_rotation and not est.rotation_ok()
+                and est.correlation >= LAG_FREE_CORRELATION)
+
+
 def _matrix(rotvec: np.ndarray) -> np.ndarray:
     from lidar_slam.geometry import matrix_from_rotvec
 
@@ -449,7 +466,8 @@ def calibrate(source, imu: ImuSamples, cfg, given_offset_s: float | None = None,
     win = _window_pass(source, cfg, start, count, window_s, confident)
     est = state["est"]
     first = est
-    for _ in range(GYRO_PASSES if est is not None and est.correlation >= MIN_CORRELATION else 0):
+    for _ in range(GYRO_PASSES if est is not None and est.correlation >= MIN_CORRELATION
+                   and not unobservable_rotation(est, need_rotation) else 0):
         gyro = GyroIntegral(imu.stamp_s, imu.gyro_radps)
         aided = _window_pass(source, cfg, start, win.scans, np.inf, lambda w, last: False,
                              (gyro, est.R_lidar_imu, est.time_offset_s))
