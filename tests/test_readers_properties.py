@@ -21,8 +21,10 @@ from lidar_slam.io.pointcloud import read_cloud
 from lidar_slam.io.sources import open_source, read_kitti_raw_timestamps
 from lidar_slam.types import Scan
 
-# All hypothesis tests of this file together stay under ~30 s on one core.
-FAST = settings(max_examples=120, deadline=2000, database=None,
+# All hypothesis tests of this file together stay under ~30 s on one core. Derandomized: the
+# accepted shares (accepted_share) vary from run to run otherwise (random PLY files: 16 to 74
+# of 120 accepted in nine runs), and CI must not pass or fail by the draw.
+FAST = settings(max_examples=120, deadline=2000, database=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 NAMES = ["x", "y", "z", "intensity", "t", "time", "timestamp", "rgb", "normal_x", "normal_y",
