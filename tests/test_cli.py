@@ -426,8 +426,8 @@ def assert_same_run_folders(a: Path, b: Path) -> None:
 def test_two_runs_write_identical_files(tmp_path):
     """The default config: two runs of the same input write the same bytes. Loop detection runs
     in a worker process; its results are applied at fixed keyframes, so runs do not depend on
-    timing (sample_scans: loops accepted); kiss-icp runs on one thread (its TBB reductions sum in
-    a varying order; the odometry rounds its pose: odometry.max_num_threads)."""
+    timing (sample_scans: loops accepted); kiss-icp's TBB reductions sum in a varying order on
+    more than one thread, and the odometry rounds its pose (odometry.max_num_threads)."""
     for name in ("a", "b"):
         assert lidar_slam("run", SAMPLE, "--out", tmp_path / name).returncode == 0
     assert_same_run_folders(tmp_path / "a", tmp_path / "b")

@@ -28,7 +28,7 @@ from lidar_slam.geometry import (
     rotation_angle_deg,
     transform_points,
 )
-from lidar_slam.registration import PlaneTarget, voxel_centroids
+from lidar_slam.registration import PlaneTarget, orthonormal, voxel_centroids
 
 # kiss-icp's pose is rounded to this right after its alignment (rotation matrix entries, and
 # metres): 1 micrometre / microradian, 100 times below the step at which kiss-icp's ICP stops
@@ -43,15 +43,12 @@ POSE_QUANTUM = 1e-6
 
 def quantised(T: np.ndarray) -> np.ndarray:
     """T (4x4) rounded to POSE_QUANTUM: the rotation's entries, then the nearest rotation to
-    them (SVD; deterministic for the same input), and the translation's metres."""
+    them (registration.orthonormal: SVD, deterministic for the same input), and the
+    translation's metres."""
     q = POSE_QUANTUM
-    R = np.round(np.asarray(T[:3, :3]) / q) * q
-    U, _, Vt = np.linalg.svd(R)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     out = np.eye(4)
-    out[:3, :3] = U @ D @ Vt
-    out[:3, 3] = np.round(np.asarray(T[:3, 3]) / q) * q
-    return out
+    out[:3] = np.round(np.asarray(T[:3]) / q) * q
+    return orthonormal(out)
 
 
 def _vec(points: np.ndarray):
