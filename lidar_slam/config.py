@@ -66,7 +66,9 @@ class OdometryConfig(_Section):
     # poses. kiss-icp sets TBB's process-wide limit from the first registration made in a
     # process, which also bounds gtsam's TBB: the first Odometry of a process decides for all.
     # Cost of one thread: 1.35x the wall time of a dense hand-held walk (docs/design.md,
-    # Determinism).
+    # Determinism). Bank with the rounding, every row in docs/bank.md: IMU ATE median / worst
+    # 0.022 / 0.117 -> 0.017 / 0.107 m, lidar only 0.120 / 2.695 -> 0.132 / 2.252 m (the rounding
+    # perturbs each run once; the thread count no longer changes a pose).
     max_num_threads: NonNegativeInt = 0
     # Slow scans are refined after kiss-icp: a scan whose last motion is under refine_below_mps
     # (m/s) is registered again, from kiss-icp's pose, by point-to-plane ICP against the clouds

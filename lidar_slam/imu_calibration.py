@@ -88,7 +88,7 @@ SECOND_SEARCH_S = 0.05  # the offset searched within this of the first pass's (s
 # rotation sigma then 1.7 -> 0.17 deg on one). A first pass whose magnitudes correlate at least
 # this has no such error left: a rotation it could not find is the motion's (a drive turning
 # about one axis: 0.9998, sigma 5.2 deg, the same after three aided passes that cost 20 s), and
-# no pass is made.
+# no pass is made. No bank row calibrates (each gives its overlay): the bank's runs are unchanged.
 LAG_FREE_CORRELATION = 0.999
 # A rotation found here is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg),
 # with a prior of this x its sigma: the sigmas are honest to a factor of about two (the grid's
