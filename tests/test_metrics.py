@@ -304,3 +304,21 @@ def test_end_drift_is_the_last_position_error_in_percent_of_the_true_path():
     assert metrics.path_length_m(gt) == pytest.approx(20.0)
     assert metrics.end_drift_pct(est, gt) == pytest.approx(2.5)
     assert metrics.end_drift_pct(est, np.stack([np.eye(4)] * 3)) is None  # truth stands still
+
+
+def test_scale_excess_of_a_turned_shifted_and_stretched_walk():
+    """A loop walked 1.2 % too long, then turned and moved: the similarity's scale says +0.012;
+    the truth against itself 0; a rigid ATE of it is not 0."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 2 * np.pi, 200)
+    gt = np.stack([make_pose(yaw_matrix(a)[:3, :3], [5 * np.cos(a), 3 * np.sin(a),
+                                                    0.2 * np.sin(3 * a)]) for a in t])
+    T = make_pose(yaw_matrix(0.7)[:3, :3], [10.0, -4.0, 1.0])
+    est = np.stack([T @ P for P in gt])
+    est[:, :3, 3] *= 1.012
+    est[:, :3, 3] += rng.normal(0.0, 0.002, (len(t), 3))
+    assert metrics.scale_excess(est, gt) == pytest.approx(0.012, abs=2e-4)
+    assert metrics.scale_excess(gt, gt) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.ate(est, gt).rmse_m > 0.02
+    with pytest.raises(ValueError, match="does not move"):
+        metrics.scale_excess(np.repeat(gt[:1], 5, axis=0), gt[:5])

@@ -22,7 +22,9 @@ on the lidar clock, and its documented settings for the sensor (RKO_SPARSE, init
 rest where the motion starts at rest).
 
 Columns: ATE (RMSE after rigid alignment, m) and worst frame (max, m); for lidar-slam the
-odometry-only ATE (odometry_kitti.txt, before loops) and final / odometry; loop stage precision
+odometry-only ATE (odometry_kitti.txt, before loops) and final / odometry, how much too long (+)
+or short (-) the odometry and the final poses are (per cent: the scale of the best similarity to
+the truth, lidar_slam.eval.metrics.scale_excess); loop stage precision
 (accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted), the loops the
 final solve kept (loops.csv's backend column) and the same precision over those; the mean
 NEES of keyframe positions (covariances.csv against the truth; 3 when consistent); frames/s,
@@ -257,6 +259,11 @@ def lidar_slam_extras(seq: benchmark.Sequence, out: Path) -> dict:
             res["odom_ate_m"] = float(metrics.ate(odom, seq.gt).rmse_m)
             res["final_over_odom"] = (float(metrics.ate(final, seq.gt).rmse_m)
                                       / max(res["odom_ate_m"], 1e-9))
+            try:  # per cent too long (+) or short (-): the error a rigid alignment leaves in
+                res["odom_scale_pct"] = 100.0 * metrics.scale_excess(odom, seq.gt)
+                res["final_scale_pct"] = 100.0 * metrics.scale_excess(final, seq.gt)
+            except ValueError:  # a sequence that does not move
+                pass
     loops = out / "loops.csv"
     if loops.is_file() and seq.gt is not None:
         pairs, T = benchmark.lidar_slam_loops(loops, seq.start, seq.n)
@@ -364,12 +371,15 @@ def run_sequence(spec: Spec, seq_path: Path, work: Path, systems: list[str],
     return out
 
 
-# Columns of a system's table: key, header, digits, which way is worse ("high", "low", or
-# "nees": away from 3 either way), and whether only lidar-slam's runs have it.
+# Columns of a system's table: key, header, digits, which way is worse ("high", "low", "abs":
+# away from 0 either way, "nees": away from 3 either way), and whether only lidar-slam's runs
+# have it.
 COLUMNS = (("ate_m", "ATE m", 3, "high", False), ("worst_frame_m", "worst frame m", 3, "high",
                                                   False),
            ("odom_ate_m", "odometry ATE m", 3, "high", True),
            ("final_over_odom", "final / odometry", 2, "high", True),
+           ("odom_scale_pct", "odometry scale %", 2, "abs", True),
+           ("final_scale_pct", "final scale %", 2, "abs", True),
            ("loops_accepted", "loops", 0, None, True),
            ("loop_precision", f"loop precision ({LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg)", 2,
             "low", True),
@@ -393,7 +403,7 @@ def median_and_worst(values: dict[str, float | None], worse: str | None
     med = float(statistics.median(have.values()))
     if worse is None:
         return med, None, None
-    key = {"high": lambda kv: kv[1], "low": lambda kv: -kv[1],
+    key = {"high": lambda kv: kv[1], "low": lambda kv: -kv[1], "abs": lambda kv: abs(kv[1]),
            "nees": lambda kv: abs(np.log(max(kv[1], 1e-12) / 3.0))}[worse]
     name, value = max(have.items(), key=key)
     return med, float(value), name

@@ -225,6 +225,24 @@ def umeyama_rigid(points_src: np.ndarray, points_dst: np.ndarray) -> np.ndarray:
     return T
 
 
+def scale_excess(poses_est: np.ndarray, poses_gt: np.ndarray) -> float:
+    """How much larger the estimate is than the truth (a fraction: 0.01 = 1 % too long), from
+    the scale of the least-squares similarity between their positions (Umeyama 1991): the
+    error a rigid ATE leaves in, which a steady over- or under-estimate of motion gives."""
+    est, gt = _check_pair(poses_est, poses_gt)
+    x, y = est[:, :3, 3], gt[:, :3, 3]
+    xc, yc = x - x.mean(axis=0), y - y.mean(axis=0)
+    var = float((xc ** 2).sum())
+    if len(x) < 3 or var <= 0.0:
+        raise ValueError("scale of a trajectory that does not move")
+    u, d, vt = np.linalg.svd(yc.T @ xc)
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
+        sign[2] = -1.0
+    s = float((d * sign).sum()) / var  # gt ~ s R est + t
+    return 1.0 / s - 1.0
+
+
 def ate(poses_est: np.ndarray, poses_gt: np.ndarray, align: bool = True) -> AteResult:
     """Translation ATE (m) after a rigid Umeyama alignment of positions; equals `evo_ape -a`."""
     est, gt = _check_pair(poses_est, poses_gt)
