@@ -237,3 +237,23 @@ def test_a_refusal_names_the_overlay_simulate_wrote_beside_the_data(walk, tmp_pa
     assert short["imu"]["used"] is False
     assert short["imu"]["reason"].endswith(f"{seq / 'lidar_slam.yaml'} gives them: --config "
                                            f"{seq / 'lidar_slam.yaml'}"), short["imu"]["reason"]
+
+
+def test_the_grid_draws_jitter_the_values_by_a_fixed_small_amount():
+    """tools/imu_calibration_grid.py --draws: draw k's values differ from the given ones by
+    JITTER_DEG about one axis and at most JITTER_S, the same every time (a repeatable bank)."""
+    from scipy.spatial.transform import Rotation
+
+    from tools import imu_calibration_grid as grid
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    seen = set()
+    for k in range(1, 7):
+        Tk, dk = grid.jittered(T, 0.05, k)
+        turn = np.degrees(Rotation.from_matrix(T[:3, :3].T @ Tk[:3, :3]).magnitude())
+        assert turn == pytest.approx(grid.JITTER_DEG)
+        assert 0 < abs(dk - 0.05) <= grid.JITTER_S + 1e-15
+        seen.add((round(dk, 9), tuple(np.round(Tk[:3, :3].ravel(), 9))))
+        np.testing.assert_array_equal(grid.jittered(T, 0.05, k)[0], Tk)
+    assert len(seen) == 6
