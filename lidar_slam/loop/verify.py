@@ -129,11 +129,15 @@ def information_matrix(src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np
 
     The point-to-plane Hessian sum(J^T J) / sigma^2 with J = [(p x n)^T, n^T], p the query point
     and n the match normal both in the query frame, keeps the shape (a corridor stays weak along
-    its axis). Thousands of neighbouring residuals are not independent, so it is scaled down
-    uniformly until no direction is more certain than cfg.info_min_rot_sigma_deg /
-    cfg.info_min_trans_sigma_m. A direction the scans cannot observe at all keeps a weak
-    information of (10 deg, 1 m)^-2, so the matrix stays positive definite. corr: (K, 2)
-    query/match indices.
+    its axis). Thousands of neighbouring residuals are not independent, so each block (rotation,
+    translation) is scaled down until no axis of it is more certain than
+    cfg.info_min_rot_sigma_deg / cfg.info_min_trans_sigma_m: D H D, D diagonal, which scales the
+    covariance's diagonal by exactly those factors. One factor for both blocks (the larger)
+    left the other block 2-8x looser than its floor: long-range points pin rotation, so the
+    translation of a warehouse or plaza loop came out at 5-15 cm for errors of 1-2 cm
+    (docs/bank.md, "The loops' information per block"). A direction the scans cannot observe
+    at all keeps a weak information of (10 deg, 1 m)^-2, so the matrix stays positive definite.
+    corr: (K, 2) query/match indices.
 
     Not small_gicp's RegistrationResult.H: its tangent is the same (rotation first, T exp(xi)),
     but its PLANE_ICP residual is per axis, n * (q - T p) elementwise, so its Hessian weights by
@@ -149,8 +153,9 @@ def information_matrix(src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np
     var = np.diag(np.linalg.inv(H))
     floor_r = np.radians(cfg.info_min_rot_sigma_deg) ** 2
     floor_t = cfg.info_min_trans_sigma_m**2
-    scale = max(1.0, floor_r / var[:3].min(), floor_t / var[3:].min())
-    return H / scale
+    d = np.repeat([1.0 / np.sqrt(max(1.0, floor_r / var[:3].min())),
+                   1.0 / np.sqrt(max(1.0, floor_t / var[3:].min()))], 3)
+    return H * np.outer(d, d)
 
 
 def _wrap(a: float) -> float:
