@@ -50,7 +50,7 @@ def test_bank_has_12_to_45_s_sequences_covering_sensors_worlds_motions_stamps_an
 
 def test_every_walk_and_trot_of_the_bank_comes_back_to_where_it_started():
     for r in bank().BANK:
-        if r.motion not in ("handheld", "legged") or r.world == "outdoor":
+        if r.motion not in ("handheld", "legged") or r.world == "outdoor" or not r.revisits:
             continue
         site = build_site(r.world, r.seed, SENSORS["os1-64"])
         make = handheld_motion if r.motion == "handheld" else legged_motion

@@ -67,7 +67,7 @@ class Spec:
     frame start (motion car) or None (a --motion walk / trot / flight); extrinsic: T_lidar_imu
     as x, y, z (m), roll, pitch, yaw (deg); offset_s: --imu-time-offset (s); why: what it tests.
     A walk's or trot's seed is one whose loop is walked more than 1.1 times (a revisit for the
-    loop stage; tests/test_bank.py checks it)."""
+    loop stage; tests/test_bank.py checks it), unless revisits is False (a short walk)."""
 
     name: str
     sensor: str
@@ -81,6 +81,7 @@ class Spec:
     why: str
     poses: str | None = None
     start: int = 0
+    revisits: bool = True
 
     @property
     def at_rest(self) -> bool:
@@ -126,6 +127,9 @@ BANK: tuple[Spec, ...] = (
     Spec("plaza-handheld-os0", "os0-128", "outdoor", "handheld", "end", ROLL180, 0.02, 35.0,
          120, "hand-held in the open (0.6 of a lap: no loop), stamps at sweep end, IMU "
          "clock 20 ms behind", None),
+    Spec("indoor-handheld30-os1", "os1-64", "indoor", "handheld", "start", ID, 0.0, 30.0, 121,
+         "a 30 s walk, 0.6 of a lap: ~45 keyframes for the final solve to average over "
+         "(the calibration grid's length)", None, revisits=False),
 )
 
 
