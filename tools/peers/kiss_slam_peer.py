@@ -22,15 +22,19 @@ import json
 from pathlib import Path
 
 import numpy as np
-from kiss_slam.config import load_config  # noqa: E402  (after the open3d preload)
-from kiss_slam.slam import KissSLAM  # noqa: E402
+
+# open3d (imported by kiss_slam) needs libusb preloaded where the system lacks it;
+# lidar_slam.o3d does that, so it comes first (it was sorted after kiss_slam once, and the peer
+# failed on a fresh machine: "libusb-1.0.so.0: cannot open shared object file").
+from lidar_slam.o3d import o3d  # noqa: F401
+
+# isort: split
+from kiss_slam.config import load_config
+from kiss_slam.slam import KissSLAM
 
 from lidar_slam.geometry import inverse, to_xyz_quat
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import write_kitti_poses
-
-# open3d (imported by kiss_slam) needs libusb preloaded on this machine; lidar_slam.o3d does that.
-from lidar_slam.o3d import o3d  # noqa: F401
 
 
 def normalised_times(point_times: np.ndarray | None) -> np.ndarray:
