@@ -3,6 +3,7 @@ odometry's variance checked against the IMU
 (lidar_slam.backend.imu_gnss_solve.odometry_variance)."""
 
 import numpy as np
+import pytest
 
 from lidar_slam.backend.factors import BetweenFactor, with_rotation_floor
 from lidar_slam.backend.imu_gnss_solve import odometry_variance
@@ -95,9 +96,36 @@ def test_odometry_variance_grows_with_residuals_beyond_the_edges_own_information
         # measured motion off by 3 sigma-ish in translation, consistent in rotation
         err = make_pose(np.eye(3), rng.normal(0.0, 0.03, 3))
         edges.append(BetweenFactor(k - 1, k, make_pose(np.eye(3), [1.0, 0.0, 0.0]) @ err, info))
-    rot, trans = odometry_variance(edges, poses)
+    rot, horizontal, vertical = odometry_variance(edges, poses)
     assert rot == 1.0  # never below 1
-    assert 6.0 < trans < 14.0, trans  # (3 cm / 1 cm)^2 = 9
+    assert 6.0 < horizontal < 14.0, horizontal  # (3 cm / 1 cm)^2 = 9
+    assert 5.0 < vertical < 15.0, vertical
+
+
+def test_odometry_variance_splits_translation_by_gravity_whatever_the_node_frames():
+    """A vertical error three times the edges' sigma, none horizontally: only the vertical
+    factor rises (~9), also with the nodes turned 90 deg about x (their y axis is up)."""
+    from lidar_slam.backend.imu_gnss_solve import _scaled_odometry
+    from lidar_slam.geometry import matrix_from_rotvec
+
+    info = np.diag([np.radians(0.1) ** -2] * 3 + [0.01 ** -2] * 3)
+    rng = np.random.default_rng(5)
+    for R in (np.eye(3), matrix_from_rotvec([np.pi / 2, 0.0, 0.0])):
+        poses, edges = {0: make_pose(R, [0.0, 0.0, 0.0])}, []
+        for k in range(1, 300):
+            poses[k] = make_pose(R, [float(k), 0.0, 0.0])
+            step = np.linalg.inv(poses[k - 1]) @ poses[k]
+            up = R.T @ np.array([0.0, 0.0, rng.normal(0.0, 0.03)])  # S's z in the node frame
+            edges.append(BetweenFactor(k - 1, k, step @ make_pose(np.eye(3), up), info))
+        rot, horizontal, vertical = odometry_variance(edges, poses)
+        assert rot == 1.0 and horizontal == 1.0
+        assert 7.0 < vertical < 11.0, vertical
+        loosened = _scaled_odometry(edges, (rot, horizontal, vertical), poses)
+        cov = np.linalg.inv(loosened[0].information)[3:, 3:]
+        sd_up = np.sqrt((R @ cov @ R.T)[2, 2])
+        sd_side = np.sqrt((R @ cov @ R.T)[0, 0])
+        assert sd_up == pytest.approx(0.01 * np.sqrt(vertical), rel=1e-6)
+        assert sd_side == pytest.approx(0.01, rel=1e-6)
 
 
 def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_aliased_one():

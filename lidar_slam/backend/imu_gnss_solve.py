@@ -257,28 +257,35 @@ CHI2_3_MEDIAN = 2.366  # median of the chi-square distribution with 3 degrees of
 
 
 def odometry_variance(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
-                      ) -> tuple[float, float]:
-    """Variance factors (rotation, translation; at least 1) of the odometry edges at a solution
-    with the IMU: the mean over edges of each block's squared residual normalised by that
-    block of the edge's own covariance, over chi-square(3)'s mean, 3 (the median instead was
-    tried on the bank and not taken: docs/bank.md, Decisions). The IMU, far surer of
-    rotation over a keyframe's fraction of a second than the gyro-free registration, shows
-    the odometry's real rotation error in its residual; an edge information from the clouds
-    alone sees the registration's noise but not the deskew or calibration errors of a shaken
-    sensor (a hand-held walk: 2.5x the predicted rotation error). Only ever loosened: where the
-    odometry dominates a direction its residual is small whatever its error."""
-    r_rot, r_trans = [], []
+                      ) -> tuple[float, float, float]:
+    """Variance factors (rotation, horizontal translation, vertical translation; each at least
+    1) of the odometry edges at a solution with the IMU (poses: T_S_node, S gravity-aligned, z
+    up): the mean over edges of each part's squared residual normalised by that part of the
+    edge's own covariance, over its chi-square mean (3 for rotation, 2 horizontal, 1 vertical;
+    the median instead was tried on the bank and not taken: docs/bank.md, Decisions). The IMU,
+    far surer of rotation over a keyframe's fraction of a second than the gyro-free
+    registration, shows the odometry's real rotation error in its residual; an edge
+    information from the clouds alone sees the registration's noise but not the deskew or
+    calibration errors of a shaken sensor (a hand-held walk: 2.5x the predicted rotation
+    error). Translation is split by gravity: a lidar's height error is not its horizontal one
+    (a 16-beam car: 3x its sigma vertically while the horizontal fits; docs/bank.md). Only ever
+    loosened: where the odometry dominates a direction its residual is small whatever its
+    error."""
+    r_rot, r_h, r_v = [], [], []
     for e in edges:
         if e.is_loop:
             continue
         err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
         cov = np.linalg.inv(e.information)
         r_rot.append(err[:3] @ np.linalg.solve(cov[:3, :3], err[:3]))
-        r_trans.append(err[3:] @ np.linalg.solve(cov[3:, 3:], err[3:]))
+        R = poses[e.j][:3, :3]  # the residual's frame (X_j's) in S
+        e_s, C_s = R @ err[3:], R @ cov[3:, 3:] @ R.T
+        r_h.append(e_s[:2] @ np.linalg.solve(C_s[:2, :2], e_s[:2]))
+        r_v.append(e_s[2] ** 2 / C_s[2, 2])
     if not r_rot:
-        return 1.0, 1.0
-    return (max(1.0, float(np.mean(r_rot)) / 3.0),
-            max(1.0, float(np.mean(r_trans)) / 3.0))
+        return 1.0, 1.0, 1.0
+    return (max(1.0, float(np.mean(r_rot)) / 3.0), max(1.0, float(np.mean(r_h)) / 2.0),
+            max(1.0, float(np.mean(r_v))))
 
 
 WHITE_FRACTION_MAX = 0.95  # of an edge's covariance: some walk always stays (the local map moves)
@@ -317,19 +324,25 @@ def odometry_white_fractions(edges: list[BetweenFactor], poses: dict[int, np.nda
     return out[0], out[1]
 
 
-def _scaled_odometry(edges: list[BetweenFactor], factors: tuple[float, float]
-                     ) -> list[BetweenFactor]:
-    """The odometry edges with their rotation / translation covariance blocks scaled by the
-    variance factors (information D^-1 I D^-1, D = the factors' square roots); loops as they
-    are."""
-    d = 1.0 / np.sqrt(np.repeat(np.asarray(factors, dtype=float), 3))
-    out, scaled = [], {}
+def _scaled_odometry(edges: list[BetweenFactor], factors: tuple[float, float, float],
+                     poses: dict[int, np.ndarray]) -> list[BetweenFactor]:
+    """The odometry edges with their covariance loosened by the variance factors (rotation,
+    horizontal, vertical translation: odometry_variance): C -> S C S^T, S = diag(sqrt(f_rot) I,
+    R_j^T diag(sqrt(f_h), sqrt(f_h), sqrt(f_v)) R_j), R_j the rotation of the edge's end node in
+    the gravity-aligned S (poses: T_S_node); loops as they are. Factors all 1: the same edges."""
+    f_rot, f_h, f_v = (float(f) for f in factors)
+    if f_rot == f_h == f_v == 1.0:
+        return list(edges)
+    out = []
     for e in edges:
         if not e.is_loop:
-            key = id(e.information)
-            if key not in scaled:
-                scaled[key] = e.information * np.outer(d, d)
-            e = dataclasses.replace(e, information=scaled[key])
+            R = poses[e.j][:3, :3]
+            S = np.zeros((6, 6))
+            S[:3, :3] = np.sqrt(f_rot) * np.eye(3)
+            S[3:, 3:] = R.T @ np.diag(np.sqrt([f_h, f_h, f_v])) @ R
+            C = S @ np.linalg.inv(e.information) @ S.T
+            info = np.linalg.inv(0.5 * (C + C.T))
+            e = dataclasses.replace(e, information=0.5 * (info + info.T))
         out.append(e)
     return out
 
@@ -422,7 +435,10 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
             if max(white) > 0.0:
                 drift = tuple(max(w, WHITE_FRACTION_MIN) for w in white)
         if max(factors) > 1.0 or drift is not None:
-            imu_edges = _scaled_odometry(imu_edges, factors)  # (factors of 1: the same values)
+            D_inv = (np.eye(4) if sol.mount_correction is None
+                     else inverse(sol.mount_correction))  # imu_edges: the IMU as assumed
+            imu_edges = _scaled_odometry(imu_edges, factors,
+                                         {k: T @ D_inv for k, T in sol.poses.items()})
             poses = sol.poses
             velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
             sol = run(used)
