@@ -209,19 +209,29 @@ class AteResult:
     T_gt_est: np.ndarray
 
 
-def umeyama_rigid(points_src: np.ndarray, points_dst: np.ndarray) -> np.ndarray:
-    """Least-squares rigid T_dst_src (no scale) with dst ~ R src + t (Umeyama 1991, as evo)."""
+def _umeyama(points_src: np.ndarray, points_dst: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Umeyama 1991, dst ~ c R src + t: R, the two means, and the similarity's scale c (nan
+    when src does not spread)."""
     x = np.asarray(points_src, dtype=np.float64)
     y = np.asarray(points_dst, dtype=np.float64)
     mx, my = x.mean(axis=0), y.mean(axis=0)
     cov = (y - my).T @ (x - mx) / len(x)
-    u, _, vt = np.linalg.svd(cov)
+    u, d, vt = np.linalg.svd(cov)
     s = np.eye(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
         s[2, 2] = -1.0
+    var = float(((x - mx) ** 2).sum()) / len(x)
+    c = float((d * np.diag(s)).sum()) / var if var > 0.0 else float("nan")
+    return u @ s @ vt, mx, my, c
+
+
+def umeyama_rigid(points_src: np.ndarray, points_dst: np.ndarray) -> np.ndarray:
+    """Least-squares rigid T_dst_src (no scale) with dst ~ R src + t (Umeyama 1991, as evo)."""
+    R, mx, my, _ = _umeyama(points_src, points_dst)
     T = np.eye(4)
-    T[:3, :3] = u @ s @ vt
-    T[:3, 3] = my - T[:3, :3] @ mx
+    T[:3, :3] = R
+    T[:3, 3] = my - R @ mx
     return T
 
 
@@ -230,17 +240,10 @@ def scale_excess(poses_est: np.ndarray, poses_gt: np.ndarray) -> float:
     the scale of the least-squares similarity between their positions (Umeyama 1991): the
     error a rigid ATE leaves in, which a steady over- or under-estimate of motion gives."""
     est, gt = _check_pair(poses_est, poses_gt)
-    x, y = est[:, :3, 3], gt[:, :3, 3]
-    xc, yc = x - x.mean(axis=0), y - y.mean(axis=0)
-    var = float((xc ** 2).sum())
-    if len(x) < 3 or var <= 0.0:
+    c = _umeyama(est[:, :3, 3], gt[:, :3, 3])[3] if len(est) >= 3 else float("nan")
+    if not c > 0.0:
         raise ValueError("scale of a trajectory that does not move")
-    u, d, vt = np.linalg.svd(yc.T @ xc)
-    sign = np.ones(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
-        sign[2] = -1.0
-    s = float((d * sign).sum()) / var  # gt ~ s R est + t
-    return 1.0 / s - 1.0
+    return 1.0 / c - 1.0
 
 
 def ate(poses_est: np.ndarray, poses_gt: np.ndarray, align: bool = True) -> AteResult:
