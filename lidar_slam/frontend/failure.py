@@ -60,7 +60,8 @@ class FailureWatch:
     _bad: int = 0
     _n_seen: int = 0
     _last_reset: int = -EPISODE_SCANS - 1  # in registered scans
-    _clouds: dict = field(default_factory=dict)  # id(keyframe points) -> (points, Cloud)
+    # id(keyframe points) -> (points, Cloud or None until first searched)
+    _clouds: dict = field(default_factory=dict)
 
     def failed(self, scan_index: int, sigma: float, points: np.ndarray, T_world_points: np.ndarray,
                anchors) -> bool:
@@ -103,24 +104,31 @@ class FailureWatch:
         return min(sigma, initial_m) if self.resets else sigma
 
     def _fitness(self, points: np.ndarray, T_world_points: np.ndarray, anchors) -> float:
-        """Share of points (thinned) within inlier_m of the anchors' clouds once placed."""
-        clouds = {}
-        for _, p in anchors:  # a KD-tree per keyframe, made once (kept with its points)
-            kept = self._clouds.get(id(p))
-            clouds[id(p)] = kept if kept is not None and kept[0] is p else (
-                p, make_cloud(np.asarray(p, np.float64), self.cloud_voxel_m, normals=False,
-                              covariances=False))
-        self._clouds = clouds
+        """Share of points (thinned) within inlier_m of the anchors' clouds once placed. The
+        newest keyframe first, and each older one only for the points not yet near (the share
+        is the same in any order); a keyframe's KD-tree is made when first searched and kept
+        with its points while it stays an anchor."""
+        kept = self._clouds
+        self._clouds = {id(p): kept[id(p)] if id(p) in kept and kept[id(p)][0] is p
+                        else (p, None) for _, p in anchors}
         pts = np.asarray(points, np.float64)
         pts = pts[::max(1, len(pts) // FITNESS_POINTS)]
         if len(pts) == 0:
             return 1.0
-        near = np.zeros(len(pts), bool)
-        for T_world_kf, p in anchors:
+        todo = np.arange(len(pts))
+        for T_world_kf, p in reversed(anchors):
+            if len(todo) == 0:
+                break
+            cloud = self._clouds[id(p)][1]
+            if cloud is None:
+                cloud = make_cloud(np.asarray(p, np.float64), self.cloud_voxel_m, normals=False,
+                                   covariances=False)
+                self._clouds[id(p)] = (p, cloud)
             T_kf_points = np.linalg.inv(T_world_kf) @ T_world_points
-            _, sq = clouds[id(p)][1].nearest(pts @ T_kf_points[:3, :3].T + T_kf_points[:3, 3])
-            near |= (sq >= 0) & (sq <= self.inlier_m ** 2)
-        return float(np.mean(near))
+            q = pts[todo]
+            _, sq = cloud.nearest(q @ T_kf_points[:3, :3].T + T_kf_points[:3, 3])
+            todo = todo[~((sq >= 0) & (sq <= self.inlier_m ** 2))]
+        return (len(pts) - len(todo)) / len(pts)
 
     def state(self) -> dict[str, np.ndarray]:
         return {"failure_resets": np.asarray(self.resets, np.int64),
