@@ -24,6 +24,7 @@ from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geo import GeoReference
 from lidar_slam.geometry import interpolate, inverse, transform_points
 from lidar_slam.loop import adapt
+from lidar_slam.loop.worker import GivenEdge
 from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import Scan
 
@@ -224,14 +225,14 @@ class Pipeline:
                                    deskewed.scan.stamp_s)
         if len(kf.points):
             self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
-        info = self.weigh_keyframe(kf.id, kf.T_world_kf_odom, kf.points)
+        raw, info = self._weigh(kf.id, kf.T_world_kf_odom, kf.points)
         up = self.inertial.up_in_lidar() if self.inertial is not None else None
         if up is not None and odom.registered:
             self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up
         if self.backend is not None:
             t0 = time.perf_counter()
             self.backend.add_keyframe(kf.id, kf.T_world_kf_odom, info)
-            self.loops.submit(kf.id)
+            self.loops.submit(kf.id, None if self.edge_information is None else GivenEdge(raw))
             self._apply_loops(kf.id - c.loop.collect_lag_keyframes)
             self.loops.pace(None if self.frames_total is None
                             else self.frames_total - len(self.result.indices) - 1)
@@ -242,9 +243,15 @@ class Pipeline:
         """The information of the odometry edge into keyframe kf_id (kept in the result), or
         None (the configured sigmas); keyframes in order, as stored (a resumed run replays
         them)."""
+        return self._weigh(kf_id, T_world_kf, points)[1]
+
+    def _weigh(self, kf_id: int, T_world_kf: np.ndarray, points: np.ndarray
+               ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """weigh_keyframe's information, after the one the clouds give (before an odometry
+        failure widens it: what the loop detector's drift gate takes)."""
         if self.edge_information is None:
-            return None
-        info = self.edge_information.add(T_world_kf, points)
+            return None, None
+        info = raw = self.edge_information.add(T_world_kf, points)
         store = self.result.store
         if kf_id > 0:
             sigma = self.odometry.failures.sigma_between(store.frame_index(kf_id - 1),
@@ -253,7 +260,7 @@ class Pipeline:
                 info = lost_information(info, sigma, self.cfg)
         if info is not None:
             self.result.odom_information[kf_id] = info
-        return info
+        return raw, info
 
     def _apply_loops(self, upto: int) -> None:
         """Collect the loop results of keyframes <= upto (in order) and update the back-end."""

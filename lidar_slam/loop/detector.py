@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +29,27 @@ log = logging.getLogger(__name__)
 # 10,000-scan drive 124 vs 144 of 2,171. Replaying that drive's keyframe store, the detector
 # ended at 140 MB with 16 kept, 86.5 MB with 2, 75 MB with none (cache and heap fragmentation).
 MATCH_SIDES_KEPT = 2
+
+
+def chi2_isf_6(p: float) -> float:
+    """x with P(chi2 with 6 dof > x) = p (0 < p < 1): scipy.special.chdtri(6, p), without the
+    0.4 s its import adds to the loop worker's start (a process of its own, beside the run on
+    the same cores). For an even dof the survival function is closed: exp(-x/2) (1 + x/2 +
+    (x/2)^2 / 2) for 6, decreasing in x, so bisection finds it to the last bits."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"probability {p} not in (0, 1)")
+    lo, hi = 0.0, 1.0
+    while math.exp(-hi / 2) * (1 + hi / 2 + hi * hi / 8) > p:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        if math.exp(-mid / 2) * (1 + mid / 2 + mid * mid / 8) > p:
+            lo = mid
+        else:
+            hi = mid
+    return hi
 
 
 @dataclass(frozen=True)
@@ -80,12 +102,13 @@ class LoopDetector:
         self._default_cov = np.linalg.inv(sigmas_to_information(b.odom_rot_sigma_deg,
                                                                 b.odom_trans_sigma_m))
         self._edge_cov: list[np.ndarray] = []
+        # Edge informations the pipeline already computed (give_edge_information), by keyframe;
+        # the rest are computed here (a resumed run's keyframes before the resume).
+        self._given: dict[int, np.ndarray | None] = {}
+        self._edges_last = -1  # the keyframe self._edges saw last
         self._gate_d2 = 0.0
         if cfg.loop.drift_gate_p > 0:
-            # chi2.isf's own function: scipy.stats would add ~0.6 s to the worker's start
-            from scipy.special import chdtri
-
-            self._gate_d2 = float(chdtri(6, cfg.loop.drift_gate_p))
+            self._gate_d2 = chi2_isf_6(cfg.loop.drift_gate_p)
 
     def path_m(self, kf_id: int) -> float:
         """Odometry path length from keyframe 0 to kf_id (keyframe to keyframe, metres)."""
@@ -130,14 +153,26 @@ class LoopDetector:
                       query, match, gap, allowed)
         return gap <= allowed
 
+    def give_edge_information(self, kf_id: int, information: np.ndarray | None) -> None:
+        """The information of the odometry edge into kf_id as the pipeline computed it
+        (EdgeInformation on the same clouds and poses; None: the configured sigmas), so that
+        the worker need not compute it again."""
+        self._given[kf_id] = information
+
     def _edge_covariance(self, kf_id: int) -> np.ndarray:
         """Covariance of the odometry edge into keyframe kf_id (computed in keyframe order)."""
         while len(self._edge_cov) <= kf_id:
             k = len(self._edge_cov)
             info = None
-            if self._edges is not None:
+            if k in self._given:
+                info = self._given.pop(k)
+            elif self._edges is not None:
+                if 0 < k and self._edges_last != k - 1:  # its predecessor was given: see it
+                    prev = self.store.get(k - 1)
+                    self._edges.add(prev.T_world_kf_odom, prev.points.astype(np.float64))
                 kf = self.store.get(k)
                 info = self._edges.add(kf.T_world_kf_odom, kf.points.astype(np.float64))
+                self._edges_last = k
             self._edge_cov.append(self._default_cov if info is None else np.linalg.inv(info))
         return self._edge_cov[kf_id]
 

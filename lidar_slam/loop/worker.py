@@ -27,10 +27,23 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.map.keyframes import KeyframeReader, KeyframeStore
+
+
+@dataclass(frozen=True)
+class GivenEdge:
+    """The information (6x6, rotation first; None: the configured sigmas) of a keyframe's
+    odometry edge as the pipeline's EdgeInformation computed it, before any widening for an
+    odometry failure: the detector's drift gate takes it instead of computing it again."""
+
+    information: np.ndarray | None
+
 
 NICENESS = 10
 # The worker process runs at the odometry's priority (instead of SCHED_IDLE) while its backlog
@@ -136,8 +149,10 @@ def _set_priority(pid: int, urgent: bool) -> bool:
         return False
 
 
-def _timed_process(kf_id: int):
+def _timed_process(kf_id: int, edge: GivenEdge | None = None):
     t0 = time.perf_counter()
+    if edge is not None:
+        _DETECTOR.give_edge_information(kf_id, edge.information)
     return _DETECTOR.process(kf_id), time.perf_counter() - t0
 
 
@@ -188,19 +203,23 @@ class LoopWorker:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="loops",
                                                 initializer=_lower_this_threads_priority)
 
-    def _local(self, kf_id: int):
+    def _local(self, kf_id: int, edge: GivenEdge | None = None):
         t0 = time.perf_counter()
+        if edge is not None:
+            self.detector.give_edge_information(kf_id, edge.information)
         return self.detector.process(kf_id), time.perf_counter() - t0
 
-    def submit(self, kf_id: int) -> None:
-        """Queue keyframe kf_id (already in the store, on disk) for detection."""
+    def submit(self, kf_id: int, edge: GivenEdge | None = None) -> None:
+        """Queue keyframe kf_id (already in the store, on disk) for detection; edge: the
+        information of its odometry edge as the pipeline computed it (else the detector
+        computes it when its drift gate needs it)."""
         if self.mode == "process":
-            job = self._pool.submit(_timed_process, kf_id)
+            job = self._pool.submit(_timed_process, kf_id, edge)
         elif self.mode == "thread":
-            job = self._pool.submit(self._local, kf_id)
+            job = self._pool.submit(self._local, kf_id, edge)
         else:
             job = Future()
-            job.set_result(self._local(kf_id))
+            job.set_result(self._local(kf_id, edge))
         self._pending.append((kf_id, job))
 
     def pace(self, frames_left: int | None) -> None:
