@@ -117,14 +117,15 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _start_process(cfg_json: dict, store_root: str, parent_pid: int) -> None:
     global _DETECTOR
-    from lidar_slam.loop.detector import LoopDetector
     from lidar_slam.runtime import tune_process
 
     tune_process()  # a spawned process: the parent's malloc settings are not inherited
     for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     _die_with_parent(parent_pid)
-    _lower_this_threads_priority(idle=True)
+    _lower_this_threads_priority(idle=True)  # before the detector's imports: the run's start first
+    from lidar_slam.loop.detector import LoopDetector
+
     _DETECTOR = LoopDetector(SlamConfig(**cfg_json), KeyframeReader(store_root))
 
 
