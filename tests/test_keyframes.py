@@ -7,7 +7,7 @@ from lidar_slam.errors import InputError
 from lidar_slam.frontend.downsample import voxel_downsample
 from lidar_slam.geometry import make_pose
 from lidar_slam.io.ply import read_ply
-from lidar_slam.map.keyframes import KeyframeStore
+from lidar_slam.map.keyframes import KeyframeReader, KeyframeStore
 from lidar_slam.map.writer import write_map
 
 
@@ -31,6 +31,21 @@ def test_keyframes_store_reads_back_what_it_wrote(tmp_path):
         np.testing.assert_array_equal(kf.intensity, clouds[k][1])
         assert kf.frame_index == 10 * k and kf.T_world_kf_odom[0, 3] == 3.0 * k
     store.flush()
+    store.close()
+
+
+def test_keyframes_odometry_poses_in_one_read_are_each_keyframes(tmp_path):
+    store = KeyframeStore(tmp_path / "kf")
+    _fill(store, n=12)
+    store.flush()
+    reader = KeyframeReader(tmp_path / "kf")  # the loop worker's view of the same store
+    for view in (store, reader):
+        poses = view.odom_poses(3, 9)
+        assert poses.shape == (7, 4, 4)
+        for i, k in enumerate(range(3, 10)):
+            np.testing.assert_array_equal(poses[i], store.T_world_kf_odom(k))
+        with pytest.raises(KeyError):
+            view.odom_poses(5, 12)  # past the last keyframe
     store.close()
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from lidar_slam.backend.factors import sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.edge_information import EdgeInformation
-from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
+from lidar_slam.geometry import relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import Side, match_side, query_side, verify
 from lidar_slam.map.keyframes import KeyframeStore
@@ -180,19 +180,21 @@ class LoopDetector:
                  information: np.ndarray) -> float:
         """Squared Mahalanobis distance of the correction a loop implies, Log(T_odom^-1 T_loop)
         in the query's frame, under the odometry edges' covariances chained from match to
-        query (each moved into the query's frame by its adjoint) plus the loop's own."""
+        query (each moved into the query's frame by its adjoint) plus the loop's own. All edges
+        at once: one loop looks back over up to the whole run."""
         from lidar_slam.backend.gtsam_graph import between_error
-        from lidar_slam.backend.inertial_graph import adjoint
 
-        cov = np.linalg.inv(information)
-        T_k_q = np.eye(4)  # the query keyframe in keyframe k's frame (odometry)
-        T_q = self.store.T_world_kf_odom(query)
-        for k in range(query, match, -1):
-            Ad = adjoint(inverse(T_k_q))
-            cov = cov + Ad @ self._edge_covariance(k) @ Ad.T
-            T_k_q = relative(self.store.T_world_kf_odom(k - 1), T_q)
-        T_odom = relative(self.store.T_world_kf_odom(match), T_q)
-        err = between_error(T_match_query, np.eye(4), T_odom)
+        self._edge_covariance(query)
+        C = np.array(self._edge_cov[match + 1:query + 1])  # edges into match+1..query
+        P = self.store.odom_poses(match, query)
+        T_q_k = relative(P[-1], P[1:])  # keyframe k in the query's frame
+        T_q_k[-1] = np.eye(4)
+        R, t = T_q_k[:, :3, :3], T_q_k[:, :3, 3]
+        Ad = np.zeros((len(R), 6, 6))  # gtsam's adjoint, rotation first: [R 0; [t]x R  R]
+        Ad[:, :3, :3] = Ad[:, 3:, 3:] = R
+        Ad[:, 3:, :3] = np.cross(t[:, :, None], R, axis=1)  # [t]x R, column by column
+        cov = np.linalg.inv(information) + np.einsum("kij,kjl,kml->im", Ad, C, Ad)
+        err = between_error(T_match_query, np.eye(4), relative(P[0], P[-1]))
         return float(err @ np.linalg.solve(cov, err))
 
     def candidates(self, kf_id: int, points: np.ndarray) -> list[LoopCandidate]:

@@ -143,6 +143,12 @@ class KeyframeStore:
         """Odometry pose (4x4) of keyframe kf_id."""
         return np.array(self._table[kf_id]["T"])
 
+    def odom_poses(self, first: int, last: int) -> np.ndarray:
+        """Odometry poses (last - first + 1, 4, 4) of keyframes first..last."""
+        if not 0 <= first <= last < self._n:
+            raise KeyError((first, last))
+        return np.array(self._table[first:last + 1]["T"])
+
     def frame_index(self, kf_id: int) -> int:
         return int(self._table[kf_id]["frame_index"])
 
@@ -224,6 +230,14 @@ class KeyframeReader:
 
     def T_world_kf_odom(self, kf_id: int) -> np.ndarray:
         return np.array(self._record(kf_id)["T"])
+
+    def odom_poses(self, first: int, last: int) -> np.ndarray:
+        """Odometry poses (last - first + 1, 4, 4) of keyframes first..last (one read)."""
+        n = last - first + 1
+        raw = os.pread(self._table_fd, n * TABLE_DTYPE.itemsize, first * TABLE_DTYPE.itemsize)
+        if first < 0 or n < 1 or len(raw) != n * TABLE_DTYPE.itemsize:
+            raise KeyError((first, last))
+        return np.array(np.frombuffer(raw, dtype=TABLE_DTYPE)["T"])
 
     def frame_index(self, kf_id: int) -> int:
         return int(self._record(kf_id)["frame_index"])
