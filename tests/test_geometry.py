@@ -26,6 +26,26 @@ def test_small_rotation_angle_is_exact():
     assert abs(g.rotation_angle_deg(T) - 0.01) < 1e-9
 
 
+def test_rotvec_and_angle_are_exact_from_tiny_angles_to_pi():
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(600, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([10.0 ** rng.uniform(-9, -2, 200), rng.uniform(0, 3.0, 200),
+                             rng.uniform(3.0, np.pi, 199), [np.pi]])
+    rv = axes * angles[:, None]
+    mats = Rotation.from_rotvec(rv).as_matrix()
+    got = g.rotvec_from_matrix(mats)
+    # at pi the axis's sign is either
+    err = np.minimum(np.abs(got - rv).max(axis=1), np.abs(got + rv).max(axis=1))
+    assert err.max() < 1e-12 * 10  # the small ones to ~1e-20, relative
+    assert (np.abs(got - rv).max(axis=1)[angles < 1e-2] < 1e-15 * angles[angles < 1e-2]).all()
+    T = np.tile(np.eye(4), (len(mats), 1, 1))
+    T[:, :3, :3] = mats
+    np.testing.assert_allclose(np.radians(g.rotation_angle_deg(T)), angles, rtol=1e-12,
+                               atol=1e-15)
+    assert g.rotvec_from_matrix(mats[5]).shape == (3,) and np.ndim(g.rotation_angle_deg(T[5])) == 0
+
+
 def test_inverse_relative_and_interpolate():
     rng = np.random.default_rng(0)
     A = g.make_pose(Rotation.random(random_state=1).as_matrix(), rng.normal(size=3))
