@@ -24,7 +24,6 @@ from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geo import GeoReference
 from lidar_slam.geometry import interpolate, inverse, transform_points
 from lidar_slam.loop import adapt
-from lidar_slam.loop.worker import GivenEdge
 from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import Scan
 
@@ -225,34 +224,40 @@ class Pipeline:
                                    deskewed.scan.stamp_s)
         if len(kf.points):
             self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
-        raw, info = self._weigh(kf.id, kf.T_world_kf_odom, kf.points)
         up = self.inertial.up_in_lidar() if self.inertial is not None else None
         if up is not None and odom.registered:
             self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up
-        if self.backend is not None:
-            t0 = time.perf_counter()
-            self.backend.add_keyframe(kf.id, kf.T_world_kf_odom, info)
-            self.loops.submit(kf.id, None if self.edge_information is None else GivenEdge(raw))
-            self._apply_loops(kf.id - c.loop.collect_lag_keyframes)
-            self.loops.pace(None if self.frames_total is None
-                            else self.frames_total - len(self.result.indices) - 1)
-            self.result.seconds["loops"] += time.perf_counter() - t0
+        if self.backend is None:
+            self._weigh(kf.id, kf.T_world_kf_odom, kf.points)
+            return
+        # The loop worker weighs the edge (LoopResult.edge_information): the keyframe joins the
+        # graph when its loop result is collected (_apply_loops), with its loops.
+        t0 = time.perf_counter()
+        self.loops.submit(kf.id)
+        self._apply_loops(kf.id - c.loop.collect_lag_keyframes)
+        self.loops.pace(None if self.frames_total is None
+                        else self.frames_total - len(self.result.indices) - 1)
+        self.result.seconds["loops"] += time.perf_counter() - t0
 
     def weigh_keyframe(self, kf_id: int, T_world_kf: np.ndarray, points: np.ndarray
                        ) -> np.ndarray | None:
-        """The information of the odometry edge into keyframe kf_id (kept in the result), or
+        """The information of the odometry edge into kf_id (kept in the result), or
         None (the configured sigmas); keyframes in order, as stored (a resumed run replays
         them)."""
-        return self._weigh(kf_id, T_world_kf, points)[1]
+        return self._weigh(kf_id, T_world_kf, points)
 
     def _weigh(self, kf_id: int, T_world_kf: np.ndarray, points: np.ndarray
-               ) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """weigh_keyframe's information, after the one the clouds give (before an odometry
-        failure widens it: what the loop detector's drift gate takes)."""
-        if self.edge_information is None:
-            return None, None
-        info = raw = self.edge_information.add(T_world_kf, points)
-        store = self.result.store
+               ) -> np.ndarray | None:
+        """weigh_keyframe's information, from the clouds of this keyframe and the one before
+        (add() in keyframe order)."""
+        raw = None if self.edge_information is None else \
+            self.edge_information.add(T_world_kf, points)
+        return self._widened(kf_id, raw)
+
+    def _widened(self, kf_id: int, raw: np.ndarray | None) -> np.ndarray | None:
+        """The edge information into kf_id as the clouds give it (raw; None: the configured
+        sigmas), widened across an odometry failure, kept in the result."""
+        info, store = raw, self.result.store
         if kf_id > 0:
             sigma = self.odometry.failures.sigma_between(store.frame_index(kf_id - 1),
                                                          store.frame_index(kf_id))
@@ -260,11 +265,26 @@ class Pipeline:
                 info = lost_information(info, sigma, self.cfg)
         if info is not None:
             self.result.odom_information[kf_id] = info
-        return raw, info
+        return info
+
+    def _add_node(self, kf_id: int, raw: np.ndarray | None) -> None:
+        """Keyframe kf_id into the back-end's graph with its odometry edge's information."""
+        info = self._widened(kf_id, raw)
+        self.backend.add_keyframe(kf_id, self.result.store.T_world_kf_odom(kf_id), info)
+
+    def _stored_edge(self, kf_id: int) -> np.ndarray | None:
+        """The clouds' information of the edge into kf_id, from the store (None: the
+        configured sigmas)."""
+        if self.edge_information is None or kf_id == 0:
+            return None
+        prev, kf = self.result.store.get(kf_id - 1), self.result.store.get(kf_id)
+        return self.edge_information.between(prev.T_world_kf_odom, prev.points,
+                                             kf.T_world_kf_odom, kf.points)
 
     def _apply_loops(self, upto: int) -> None:
         """Collect the loop results of keyframes <= upto (in order) and update the back-end."""
         for res in self.loops.collect(upto):
+            self._add_node(res.kf_id, res.edge_information)
             res = self._check_tilt(res)
             self.result.loops.extend(res.records)
             if res.constraint is not None:
@@ -335,8 +355,7 @@ class Pipeline:
                 finally:
                     self.loops.close()
             for kf_id in range(len(self.backend), len(r.store)):  # stopped mid-keyframe
-                self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
-                                          r.odom_information.get(kf_id))
+                self._add_node(kf_id, self._stored_edge(kf_id))
             r.kf_poses = self.backend.finish()
             r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s

@@ -156,50 +156,42 @@ def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_
     store.close()
 
 
-def test_the_drift_gate_takes_the_pipelines_edge_information_as_its_own():
-    """The pipeline hands each keyframe's edge information to the loop detector (the worker
-    need not compute it again): the same gate as the detector's own, also when only the later
-    keyframes are given (a resumed run) and for a thin keyframe (None: configured sigmas)."""
+def test_the_worker_weighs_each_edge_as_the_pipeline_would_in_any_order():
+    """The loop detector weighs each keyframe's odometry edge from the stored clouds (what the
+    back-end takes, LoopResult.edge_information): the same matrices as the pipeline's
+    EdgeInformation fed in keyframe order, whatever order they are asked in (a resumed run
+    asks for the later ones first), a thin keyframe None (the configured sigmas), and the
+    same drift gate."""
     from lidar_slam.config import load_config
+    from lidar_slam.loop import adapt
     from lidar_slam.loop.detector import LoopDetector
     from lidar_slam.map.keyframes import KeyframeStore
 
-    cfg = load_config()
     rng = np.random.default_rng(5)
     store = KeyframeStore(None)
     room = _room(rng, 0.01)
+    cfg = load_config()
+    cfg = adapt.apply(cfg, adapt.auto_values(cfg, room))  # as the pipeline's first scan does
     for k in range(12):
         pts = room[:10] if k == 6 else room - [0.4 * k, 0, 0]
         store.add(k, make_pose(np.eye(3), [0.4 * k, 0.0, 0.0]), pts, None)
     edges = EdgeInformation(cfg.backend.odom_information, cfg.keyframes.cloud_voxel_m)
-    given = [edges.add(store.get(k).T_world_kf_odom, store.get(k).points) for k in range(12)]
-    assert given[6] is None and given[7] is None and given[5] is not None
+    in_order = [edges.add(store.get(k).T_world_kf_odom, store.get(k).points) for k in range(12)]
+    assert in_order[0] is None and in_order[6] is None and in_order[7] is None
     loop_info = np.diag([np.radians(0.2) ** -2] * 3 + [0.02 ** -2] * 3)
     T = make_pose(np.eye(3), [4.4 + 0.03, -0.02, 0.0])
-    own = LoopDetector(cfg, store)
-    d2 = own.drift_d2(0, 11, T, loop_info)
-    for first_given in (0, 5, 8):  # all given; a resume at keyframe 5 (or 8): the rest computed
-        det = LoopDetector(cfg, store)
-        for k in range(first_given, 12):
-            det.give_edge_information(k, given[k])
-        det._edges.add = _counted(det._edges.add, calls := [])
-        assert det.drift_d2(0, 11, T, loop_info) == d2
-        # its own: keyframes before the first given one, and the one before that to start from
-        assert len(calls) == first_given
-    det = LoopDetector(cfg, store)  # given first, then not: keyframe 8's predecessor seen again
-    for k in range(8):
-        det.give_edge_information(k, given[k])
-    det._edges.add = _counted(det._edges.add, calls := [])
+    d2 = LoopDetector(cfg, store).drift_d2(0, 11, T, loop_info)
+    det = LoopDetector(cfg, store)
+    for k in (11, 3, 7, 6, 0, 8, 1, 2, 4, 5, 9, 10):
+        got = det.edge_information(k)
+        if in_order[k] is None:
+            assert got is None
+        else:
+            np.testing.assert_array_equal(got, in_order[k])
     assert det.drift_d2(0, 11, T, loop_info) == d2
-    assert len(calls) == 1 + 4
+    result = det.process(11)  # its result carries the edge's information
+    np.testing.assert_array_equal(result.edge_information, in_order[11])
     store.close()
-
-
-def _counted(f, calls):
-    def g(*a, **k):
-        calls.append(1)
-        return f(*a, **k)
-    return g
 
 
 def test_the_drift_gates_chi_square_quantile_is_scipys():

@@ -53,7 +53,7 @@ def information(fit_hessian: np.ndarray, rms_m: float, cfg: OdometryInformationC
 class EdgeInformation:
     """add(T_world_kf, points) for each keyframe in order -> the information of the edge from the
     previous keyframe to it (None for the first, or when either cloud is empty or too thin:
-    the caller then uses the configured sigmas)."""
+    the caller then uses the configured sigmas); between() for any two consecutive ones."""
 
     def __init__(self, cfg: OdometryInformationConfig, cloud_voxel_m: float):
         self.cfg = cfg
@@ -63,13 +63,23 @@ class EdgeInformation:
     def add(self, T_world_kf: np.ndarray, points: np.ndarray) -> np.ndarray | None:
         """points: (N, 3) the keyframe's cloud in its own frame (m)."""
         prev, self._prev = self._prev, (T_world_kf, np.asarray(points, np.float64))
-        if prev is None or len(prev[1]) < MIN_RESIDUALS or len(points) < MIN_RESIDUALS:
+        if prev is None:
+            return None
+        return self.between(prev[0], prev[1], T_world_kf, self._prev[1])
+
+    def between(self, T_world_prev: np.ndarray, prev_points: np.ndarray, T_world_kf: np.ndarray,
+                points: np.ndarray) -> np.ndarray | None:
+        """The information of the edge from a keyframe (pose, cloud in its frame) to the next,
+        whatever came before (add() in keyframe order gives the same)."""
+        prev_points = np.asarray(prev_points, np.float64)
+        points = np.asarray(points, np.float64)
+        if len(prev_points) < MIN_RESIDUALS or len(points) < MIN_RESIDUALS:
             return None
         c = self.cfg
-        target = PlaneTarget(prev[1], self.cloud_voxel_m, 0, c.max_correspondence_m)
-        source = voxel_centroids(self._prev[1], c.cell_m)  # this keyframe's cloud
-        fit = plane_fit(target, source, relative(prev[0], T_world_kf), c.max_correspondence_m,
-                        c.min_residual_m)
+        target = PlaneTarget(prev_points, self.cloud_voxel_m, 0, c.max_correspondence_m)
+        source = voxel_centroids(points, c.cell_m)  # this keyframe's cloud
+        fit = plane_fit(target, source, relative(T_world_prev, T_world_kf),
+                        c.max_correspondence_m, c.min_residual_m)
         if fit.n < MIN_RESIDUALS:
             return None
         return information(fit.hessian, fit.rms_m, c)

@@ -77,6 +77,9 @@ class LoopResult:
     kf_id: int
     records: tuple[LoopRecord, ...]
     constraint: LoopConstraint | None
+    # the information of the odometry edge into kf_id (6x6, rotation first), from the clouds
+    # (frontend.edge_information; None: too thin, or off: the configured sigmas)
+    edge_information: np.ndarray | None = None
 
 
 class LoopDetector:
@@ -94,18 +97,18 @@ class LoopDetector:
         self.index = ScanContextIndex(cfg.loop.scan_context, store.root / "descriptors.bin")
         self._path_m = [0.0]  # odometry path travelled up to each keyframe (metres)
         self._sides: dict[tuple[int, int], Side] = {}  # match submaps' clouds, oldest first
-        # The drift gate: each odometry edge's covariance (into keyframe k, rotation first, k's
-        # frame), from the same data and function as the back-end's edge information.
+        # Each odometry edge's information (into keyframe k, rotation first, k's frame) from the
+        # clouds: the back-end's (it comes with k's result) and, inverted, the drift gate's.
         b = cfg.backend
         self._edges = (EdgeInformation(b.odom_information, cfg.keyframes.cloud_voxel_m)
                        if b.odom_information.enabled else None)
         self._default_cov = np.linalg.inv(sigmas_to_information(b.odom_rot_sigma_deg,
                                                                 b.odom_trans_sigma_m))
-        self._edge_cov: list[np.ndarray] = []
-        # Edge informations the pipeline already computed (give_edge_information), by keyframe;
-        # the rest are computed here (a resumed run's keyframes before the resume).
-        self._given: dict[int, np.ndarray | None] = {}
-        self._edges_last = -1  # the keyframe self._edges saw last
+        # keyframe id -> its edge's information (None: the configured sigmas) and covariance,
+        # computed when first needed: each keyframe's by process(), older ones (a resumed run's)
+        # by the drift gate
+        self._edge_info: dict[int, np.ndarray | None] = {}
+        self._edge_cov: dict[int, np.ndarray] = {}
         self._gate_d2 = 0.0
         if cfg.loop.drift_gate_p > 0:
             self._gate_d2 = chi2_isf_6(cfg.loop.drift_gate_p)
@@ -153,28 +156,27 @@ class LoopDetector:
                       query, match, gap, allowed)
         return gap <= allowed
 
-    def give_edge_information(self, kf_id: int, information: np.ndarray | None) -> None:
-        """The information of the odometry edge into kf_id as the pipeline computed it
-        (EdgeInformation on the same clouds and poses; None: the configured sigmas), so that
-        the worker need not compute it again."""
-        self._given[kf_id] = information
+    def edge_information(self, kf_id: int) -> np.ndarray | None:
+        """The information of the odometry edge into kf_id (EdgeInformation on the stored
+        clouds and poses of kf_id - 1 and kf_id: what the pipeline's back-end takes; None: the
+        configured sigmas)."""
+        if kf_id not in self._edge_info:
+            info = None
+            if self._edges is not None and kf_id > 0:
+                prev, kf = self.store.get(kf_id - 1), self.store.get(kf_id)
+                info = self._edges.between(prev.T_world_kf_odom, prev.points,
+                                           kf.T_world_kf_odom, kf.points)
+            self._edge_info[kf_id] = info
+        return self._edge_info[kf_id]
 
     def _edge_covariance(self, kf_id: int) -> np.ndarray:
-        """Covariance of the odometry edge into keyframe kf_id (computed in keyframe order)."""
-        while len(self._edge_cov) <= kf_id:
-            k = len(self._edge_cov)
-            info = None
-            if k in self._given:
-                info = self._given.pop(k)
-            elif self._edges is not None:
-                if 0 < k and self._edges_last != k - 1:  # its predecessor was given: see it
-                    prev = self.store.get(k - 1)
-                    self._edges.add(prev.T_world_kf_odom, prev.points.astype(np.float64))
-                kf = self.store.get(k)
-                info = self._edges.add(kf.T_world_kf_odom, kf.points.astype(np.float64))
-                self._edges_last = k
-            self._edge_cov.append(self._default_cov if info is None else np.linalg.inv(info))
-        return self._edge_cov[kf_id]
+        """Covariance of the odometry edge into keyframe kf_id."""
+        cov = self._edge_cov.get(kf_id)
+        if cov is None:
+            info = self.edge_information(kf_id)
+            cov = self._default_cov if info is None else np.linalg.inv(info)
+            self._edge_cov[kf_id] = cov
+        return cov
 
     def drift_d2(self, match: int, query: int, T_match_query: np.ndarray,
                  information: np.ndarray) -> float:
@@ -184,8 +186,7 @@ class LoopDetector:
         at once: one loop looks back over up to the whole run."""
         from lidar_slam.backend.gtsam_graph import between_error
 
-        self._edge_covariance(query)
-        C = np.array(self._edge_cov[match + 1:query + 1])  # edges into match+1..query
+        C = np.array([self._edge_covariance(k) for k in range(match + 1, query + 1)])
         P = self.store.odom_poses(match, query)
         T_q_k = relative(P[-1], P[1:])  # keyframe k in the query's frame
         T_q_k[-1] = np.eye(4)
@@ -221,11 +222,12 @@ class LoopDetector:
         """Look for loops of keyframe kf_id (the newest one processed): scan-context
         candidates, verified until one is accepted; then index the keyframe."""
         kf = self.store.get(kf_id)
+        edge = self.edge_information(kf_id)
         query_pts = kf.points.astype(np.float64)
         records: list[LoopRecord] = []
         constraint = None
         if len(query_pts) == 0:  # nothing in range: a graph node, but nothing to describe
-            return LoopResult(kf_id, (), None)
+            return LoopResult(kf_id, (), None, edge)
         candidates = self.candidates(kf.id, query_pts)
         vcfg = self.cfg.loop.verify
         query = query_side(self.submap(kf.id, vcfg.submap_radius, kf.id), vcfg) if candidates \
@@ -250,7 +252,7 @@ class LoopDetector:
                          records[-1].match_frame, res.fitness)
                 break
         self._index(kf.id, query_pts)
-        return LoopResult(kf_id, tuple(records), constraint)
+        return LoopResult(kf_id, tuple(records), constraint, edge)
 
 
 def loops_csv_rows(records: list[LoopRecord],

@@ -1,5 +1,8 @@
 """Loop detection off the critical path: keyframes are submitted as the odometry makes them, a
-worker runs detection and verification, and results are collected in keyframe order.
+worker runs detection and verification, and results are collected in keyframe order. The worker
+also weighs each keyframe's odometry edge (its information from the clouds), which the pipeline
+hands to the back-end with the keyframe's loops: on a car's drive that is 6 ms a keyframe the
+odometry no longer waits for.
 
 Determinism does not depend on the worker's speed: what the detector computes for a keyframe is
 fixed once the keyframe is stored (see LoopDetector), and the pipeline collects the result of
@@ -27,23 +30,10 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from lidar_slam.config import SlamConfig
 from lidar_slam.map.keyframes import KeyframeReader, KeyframeStore
-
-
-@dataclass(frozen=True)
-class GivenEdge:
-    """The information (6x6, rotation first; None: the configured sigmas) of a keyframe's
-    odometry edge as the pipeline's EdgeInformation computed it, before any widening for an
-    odometry failure: the detector's drift gate takes it instead of computing it again."""
-
-    information: np.ndarray | None
-
 
 NICENESS = 10
 # The worker process runs at the odometry's priority (instead of SCHED_IDLE) while its backlog
@@ -150,10 +140,8 @@ def _set_priority(pid: int, urgent: bool) -> bool:
         return False
 
 
-def _timed_process(kf_id: int, edge: GivenEdge | None = None):
+def _timed_process(kf_id: int):
     t0 = time.perf_counter()
-    if edge is not None:
-        _DETECTOR.give_edge_information(kf_id, edge.information)
     return _DETECTOR.process(kf_id), time.perf_counter() - t0
 
 
@@ -204,23 +192,20 @@ class LoopWorker:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="loops",
                                                 initializer=_lower_this_threads_priority)
 
-    def _local(self, kf_id: int, edge: GivenEdge | None = None):
+    def _local(self, kf_id: int):
         t0 = time.perf_counter()
-        if edge is not None:
-            self.detector.give_edge_information(kf_id, edge.information)
         return self.detector.process(kf_id), time.perf_counter() - t0
 
-    def submit(self, kf_id: int, edge: GivenEdge | None = None) -> None:
-        """Queue keyframe kf_id (already in the store, on disk) for detection; edge: the
-        information of its odometry edge as the pipeline computed it (else the detector
-        computes it when its drift gate needs it)."""
+    def submit(self, kf_id: int) -> None:
+        """Queue keyframe kf_id (already in the store, on disk) for detection and the
+        information of its odometry edge (LoopResult.edge_information)."""
         if self.mode == "process":
-            job = self._pool.submit(_timed_process, kf_id, edge)
+            job = self._pool.submit(_timed_process, kf_id)
         elif self.mode == "thread":
-            job = self._pool.submit(self._local, kf_id, edge)
+            job = self._pool.submit(self._local, kf_id)
         else:
             job = Future()
-            job.set_result(self._local(kf_id, edge))
+            job.set_result(self._local(kf_id))
         self._pending.append((kf_id, job))
 
     def pace(self, frames_left: int | None) -> None:

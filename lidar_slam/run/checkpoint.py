@@ -318,17 +318,21 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         loops = [LoopConstraint(int(q), int(m), T, info, float(f), float(e)) for (q, m), T, info,
                  (f, e) in zip(a["loop_ids"], a["loop_T"], a["loop_info"], a["loop_fit"])]
         by_query = {c.query: c for c in loops}
-        for kf_id in range(len(r.store)):
+        # The graph holds the keyframes whose loop results were collected (the later ones join
+        # it with their results, as in the run); a checkpoint from before 2026-12-05 held every
+        # stored keyframe: its live estimate is cut to those.
+        upto = min(upto, len(r.store) - 1)
+        for kf_id in range(upto + 1):
             pipe.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
                                       r.odom_information.get(kf_id))
             if kf_id in by_query:
                 pipe.backend.add_loop(by_query[kf_id])
         if "backend_live" in a:
-            pipe.backend.restore_live(a["backend_live"])
+            pipe.backend.restore_live(a["backend_live"][:upto + 1])
         else:  # a checkpoint from before the windowed back-end: re-solve the newest window
             pipe.backend.update()
-        upto = min(upto, len(r.store) - 1)
         pipe.loops.reindex(upto)
+        pipe.loops_applied_upto = upto  # what a checkpoint before the next collection says
         for kf_id in range(max(upto + 1, 0), len(r.store)):
             pipe.loops.submit(kf_id)
     return meta["frames"]
