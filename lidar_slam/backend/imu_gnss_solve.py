@@ -417,7 +417,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         return inertial_graph.solve(poses, velocities, imu_edges, links, factors,
                                     prior_mean, prior_cov, BIAS_SIGMA, GNSS_HUBER_K,
                                     cfg.backend.max_iterations, RELATIVE_TOL,
-                                    mount_sigma_rad=mount_sigma, drift=drift)
+                                    covariances=False, mount_sigma_rad=mount_sigma, drift=drift)
 
     def lidar_poses(sol: inertial_graph.InertialSolution) -> dict[int, np.ndarray]:
         D_inv = np.eye(4) if sol.mount_correction is None else inverse(sol.mount_correction)
@@ -452,6 +452,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         used, poses = gate, sol.poses  # solve again from here without the fixes gated out
         velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
         sol = run(used)
+    sol = sol.with_covariances()  # of the last solve only
     T_S_lidar = lidar_poses(sol)
     if sol.mount_correction is not None:  # the nodes are the IMU turned by it
         C = C @ sol.mount_correction

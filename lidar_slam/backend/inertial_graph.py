@@ -13,6 +13,7 @@ into the IMU frame (lidar_slam.backend.imu_gnss_solve).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -61,6 +62,16 @@ class InertialSolution:
     # T_imu_imu' (4x4, a rotation): the nodes are the frames of the IMU mounted at T_lidar_imu
     # T_imu_imu' when the solve refined the mounting (mount_sigma_rad), else None
     mount_correction: np.ndarray | None = None
+    # the graph and its solution (gtsam), for covariances asked for later (with_covariances)
+    graph: object = field(default=None, repr=False)
+    estimate: object = field(default=None, repr=False)
+
+    def with_covariances(self) -> InertialSolution:
+        """Itself with the poses' covariances (computed now if the solve did not)."""
+        if self.covariances or self.graph is None:
+            return self
+        return dataclasses.replace(self, covariances=pose_covariances(
+            self.graph, self.estimate, list(self.poses)))
 
 
 def _noise(information: np.ndarray, robust_k: float | None):
@@ -147,7 +158,7 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
         out_poses, {k: np.asarray(result.atVector(V(k))) for k in with_imu},
         {k: np.asarray(result.atConstantBias(B(k)).vector()) for k in with_imu}, initial_error,
         float(graph.error(result)), int(optimizer.iterations()), time.perf_counter() - t0, cov,
-        mount)
+        mount, graph, result)
 
 
 _SELECT_ROTATION = np.vstack([np.eye(3), np.zeros((3, 3))])  # d Pose3(R, 0) / d R (6x3)
