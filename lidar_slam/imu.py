@@ -65,6 +65,9 @@ class ImuStream:
         self.samples = samples
         self.t = np.asarray(samples.stamp_s, dtype=np.float64)
         self._values = np.c_[samples.gyro_radps, samples.accel_mps2].astype(np.float64)
+        # interval()'s last answers: the front-end asks for the interval between two scans,
+        # and its IMU check for the same one right after
+        self._intervals: dict[tuple[float, float], Interval] = {}
 
     @property
     def start_s(self) -> float:
@@ -95,12 +98,21 @@ class ImuStream:
 
     def interval(self, t0_s: float, t1_s: float) -> Interval:
         """The steps between t0_s and t1_s (t1_s >= t0_s): the sample stamps inside, with the
-        interpolated measurement at both ends."""
-        knots = self.knots(t0_s, t1_s)
-        values = self.at(knots)
-        mean = 0.5 * (values[:-1] + values[1:])
-        covered = bool(self.t[0] <= t0_s and t1_s <= self.t[-1])
-        return Interval(np.diff(knots), mean[:, :3], mean[:, 3:], covered)
+        interpolated measurement at both ends (read-only arrays: the last few are kept)."""
+        key = (float(t0_s), float(t1_s))
+        iv = self._intervals.get(key)
+        if iv is None:
+            knots = self.knots(t0_s, t1_s)
+            values = self.at(knots)
+            mean = 0.5 * (values[:-1] + values[1:])
+            covered = bool(self.t[0] <= t0_s and t1_s <= self.t[-1])
+            iv = Interval(np.diff(knots), mean[:, :3], mean[:, 3:], covered)
+            for a in (iv.dt_s, iv.gyro_radps, iv.accel_mps2):
+                a.flags.writeable = False
+            if len(self._intervals) >= 4:
+                del self._intervals[next(iter(self._intervals))]
+            self._intervals[key] = iv
+        return iv
 
     def preintegrate(self, t0_s: float, t1_s: float, params: gtsam.PreintegrationCombinedParams,
                      bias: gtsam.imuBias.ConstantBias | None = None
