@@ -72,8 +72,8 @@ class FailureWatch:
         if self.min_fitness <= 0 or not anchors:
             self._bad = 0
             return False
-        fitness = self._fitness(points, T_world_points, anchors)
         bar = self.wide_min_fitness if 0 < self.sigma_m < sigma else self.min_fitness
+        fitness = self._fitness(points, T_world_points, anchors, bar)
         self._bad = self._bad + 1 if fitness < bar else 0
         if self._bad < self.scans:
             return False
@@ -103,11 +103,13 @@ class FailureWatch:
         of a reset (the walk's flicks), and a wide kernel is what made it crawl."""
         return min(sigma, initial_m) if self.resets else sigma
 
-    def _fitness(self, points: np.ndarray, T_world_points: np.ndarray, anchors) -> float:
+    def _fitness(self, points: np.ndarray, T_world_points: np.ndarray, anchors,
+                 enough: float = 1.0) -> float:
         """Share of points (thinned) within inlier_m of the anchors' clouds once placed. The
         newest keyframe first, and each older one only for the points not yet near (the share
-        is the same in any order); a keyframe's KD-tree is made when first searched and kept
-        with its points while it stays an anchor."""
+        is the same in any order), until the share reaches `enough` (the bar: the rest cannot
+        bring it under); a keyframe's KD-tree is made when first searched and kept with its
+        points while it stays an anchor."""
         kept = self._clouds
         self._clouds = {id(p): kept[id(p)] if id(p) in kept and kept[id(p)][0] is p
                         else (p, None) for _, p in anchors}
@@ -117,7 +119,7 @@ class FailureWatch:
             return 1.0
         todo = np.arange(len(pts))
         for T_world_kf, p in reversed(anchors):
-            if len(todo) == 0:
+            if len(todo) == 0 or (len(pts) - len(todo)) / len(pts) >= enough:
                 break
             cloud = self._clouds[id(p)][1]
             if cloud is None:
