@@ -354,8 +354,12 @@ class Pipeline:
                     self._apply_loops(len(r.store))
                 finally:
                     self.loops.close()
-            for kf_id in range(len(self.backend), len(r.store)):  # stopped mid-keyframe
-                self._add_node(kf_id, self._stored_edge(kf_id))
+            for kf_id in range(len(self.backend), len(r.store)):
+                if self.loops is None:  # no loops: weighed as it was made (_add_keyframe)
+                    self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
+                                              r.odom_information.get(kf_id))
+                else:  # stopped between the store and the worker
+                    self._add_node(kf_id, self._stored_edge(kf_id))
             r.kf_poses = self.backend.finish()
             r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s
