@@ -9,7 +9,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lidar_slam.config import ImuConfig
-from lidar_slam.imu import ImuStream, combined_params, gravity_rotation
+from lidar_slam.imu import (
+    ImuStream,
+    bias_from_vector,
+    combined_params,
+    gravity_rotation,
+    predict_pose,
+    predict_poses_along,
+)
 from lidar_slam.io.imu_gnss import ImuSamples
 from lidar_slam.sim.imu_gnss import NOISELESS, ImuOptions, SmoothTrajectory, simulate_imu
 
@@ -50,6 +57,26 @@ def test_preintegration_between_instants_off_the_samples_carries_one_pose_to_the
     d = np.linalg.inv(T1) @ pred.pose().matrix()
     assert np.linalg.norm(d[:3, 3]) < 1e-3 * max(1.0, (t1 - t0) / 0.1) ** 2
     assert np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()) < 0.01
+
+
+def test_poses_along_one_integration_are_each_instants_own_prediction():
+    """The frames between two keyframes (backend.imu_gnss_solve.imu_frame_poses): one
+    integration through their stamps gives each the pose an integration to it alone gives, to
+    the steps their stamps cut (~1e-6 m); stamps between samples, on a sample, and two in one
+    sample step included."""
+    traj, T_li = shaky_walk(), T_lidar_imu()
+    imu = ImuStream(stream(traj, 200.0, T_li))
+    params = combined_params(ImuConfig())
+    t0 = 1.2345
+    times = [1.2371, 1.24, 1.2402, 1.2667, 1.3391]
+    _, _, v = traj.imu_truth(np.array([t0]), T_li)
+    T0 = traj(np.array([t0]))[0] @ T_li
+    bias6 = np.array([0.02, -0.01, 0.03, 0.001, -0.002, 0.0005])
+    along = predict_poses_along(imu, t0, times, params, T0, v[0], bias6)
+    for t, T in zip(times, along, strict=True):
+        alone = predict_pose(imu.preintegrate(t0, t, params, bias_from_vector(bias6)), T0, v[0],
+                             bias6)
+        np.testing.assert_allclose(T, alone, atol=1e-5)
 
 
 def test_an_interval_outside_the_samples_is_reported_as_not_covered():

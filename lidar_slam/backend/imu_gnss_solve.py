@@ -32,10 +32,10 @@ from lidar_slam.geo import LocalEnu
 from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import (
     ImuStream,
-    bias_from_vector,
     combined_params,
     gravity_rotation,
     predict_pose,
+    predict_poses_along,
 )
 from lidar_slam.io.imu_gnss import GnssFixes, ImuSamples
 
@@ -146,8 +146,6 @@ def imu_frame_poses(links: list[inertial_graph.ImuLink], sol: inertial_graph.Ine
     between keyframes are not in the solve; moved with their keyframes' corrections they keep
     the odometry's scan-to-scan jitter (sim 07-os0: 2 cm per frame along track) plus the
     keyframes' own, where the IMU over a fraction of a second is good to a millimetre."""
-    import gtsam
-
     out: dict[int, np.ndarray] = {}
     for ln in links:
         if ln.i not in sol.poses or ln.j not in sol.poses:
@@ -157,23 +155,12 @@ def imu_frame_poses(links: list[inertial_graph.ImuLink], sol: inertial_graph.Ine
         if not len(inside):
             continue
         bias6, v0 = sol.biases[ln.i], sol.velocities[ln.i]
-        bias = bias_from_vector(bias6)
         T_end = predict_pose(ln.pim, sol.poses[ln.i], v0, bias6)
         mismatch = sol.poses[ln.j] @ inverse(T_end)
-        start = gtsam.NavState(gtsam.Pose3(sol.poses[ln.i]), np.asarray(v0, dtype=float))
-        # One integration through the link, predicting at each frame's stamp on the way (a
-        # step that a frame's stamp cuts is integrated in its two parts, as an integration
-        # to that stamp does)
-        pim, t_at = gtsam.PreintegratedCombinedMeasurements(params, bias), t0
-        for f in inside.tolist():
-            t = float(frame_stamps_s[f])
-            if t > t_at:
-                iv = stream.interval(t_at, t)
-                for dt, w, a in zip(iv.dt_s.tolist(), iv.gyro_radps, iv.accel_mps2):
-                    if dt > 0:
-                        pim.integrateMeasurement(a, w, dt)
-                t_at = t
-            T = pim.predict(start, bias).pose().matrix()
+        times = [float(frame_stamps_s[f]) for f in inside.tolist()]
+        # one integration through the link, predicting at each frame's stamp on the way
+        for f, t, T in zip(inside.tolist(), times, predict_poses_along(
+                stream, t0, times, params, sol.poses[ln.i], v0, bias6)):
             out[f] = interpolate(T, mismatch @ T, (t - t0) / (t1 - t0))
     return out
 
