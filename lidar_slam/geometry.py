@@ -41,10 +41,14 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
     ], -2)
 
 
-def _vee_skew(m: np.ndarray) -> np.ndarray:
-    """vee(R - R^T) of rotation matrices (n, 3, 3): 2 sin(angle) axis."""
-    return np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
-                     m[:, 1, 0] - m[:, 0, 1]], -1)
+def _skew_and_angle(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of rotation matrices (n, 3, 3): w = vee(R - R^T) (2 sin(angle) axis), sin(angle) and the
+    angle (rad), atan2(sin, cos) from the skew part and the trace (exact also for small angles,
+    where arccos((trace - 1) / 2) loses precision)."""
+    w = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
+                  m[:, 1, 0] - m[:, 0, 1]], -1)
+    s = 0.5 * np.linalg.norm(w, axis=-1)
+    return w, s, np.arctan2(s, 0.5 * (m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2] - 1.0))
 
 
 # Above this angle (rad) the skew part says too little of the axis: the quaternion route there.
@@ -58,9 +62,7 @@ def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
     quaternion route alone, the same to ~1e-16 rad."""
     R = np.asarray(R, dtype=np.float64)
     m = R.reshape(-1, 3, 3)
-    w = _vee_skew(m)
-    s = 0.5 * np.linalg.norm(w, axis=-1)
-    angle = np.arctan2(s, 0.5 * (m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2] - 1.0))
+    w, s, angle = _skew_and_angle(m)
     # angle / (2 sin(angle)), -> 1/2 at 0 (its series: 1/2 + angle^2 / 12)
     f = np.where(s > 1e-8, angle / np.maximum(2.0 * s, 1e-300), 0.5 + angle**2 / 12.0)
     out = w * f[:, None]
@@ -115,15 +117,12 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(T: np.ndarray) -> np.ndarray:
-    """Rotation angle of a transform (or a stack) in degrees: atan2(sin, cos) from the skew
-    part and the trace (exact also for small angles, where arccos((trace - 1) / 2) loses
-    precision). For rotations orthonormal to machine precision (the pipeline's own); rotations
-    read from files (orthonormal to ~1e-7) need the nearest rotation's angle
+    """Rotation angle of a transform (or a stack) in degrees, from the skew part and the trace
+    (_skew_and_angle). For rotations orthonormal to machine precision (the pipeline's own);
+    rotations read from files (orthonormal to ~1e-7) need the nearest rotation's angle
     (eval.metrics._angle_deg)."""
     T = np.asarray(T, dtype=np.float64)
-    m = T[..., :3, :3].reshape(-1, 3, 3)
-    s = 0.5 * np.linalg.norm(_vee_skew(m), axis=-1)
-    angle = np.arctan2(s, 0.5 * (m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2] - 1.0))
+    angle = _skew_and_angle(T[..., :3, :3].reshape(-1, 3, 3))[2]
     return np.degrees(angle).reshape(T.shape[:-2])[()]
 
 

@@ -228,7 +228,7 @@ class Pipeline:
         if up is not None and odom.registered:
             self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up
         if self.backend is None:
-            self._weigh(kf.id, kf.T_world_kf_odom, kf.points)
+            self.weigh_keyframe(kf.id, kf.T_world_kf_odom, kf.points)
             return
         # The loop worker weighs the edge (LoopResult.edge_information): the keyframe joins the
         # graph when its loop result is collected (_apply_loops), with its loops.
@@ -241,15 +241,9 @@ class Pipeline:
 
     def weigh_keyframe(self, kf_id: int, T_world_kf: np.ndarray, points: np.ndarray
                        ) -> np.ndarray | None:
-        """The information of the odometry edge into kf_id (kept in the result), or
-        None (the configured sigmas); keyframes in order, as stored (a resumed run replays
-        them)."""
-        return self._weigh(kf_id, T_world_kf, points)
-
-    def _weigh(self, kf_id: int, T_world_kf: np.ndarray, points: np.ndarray
-               ) -> np.ndarray | None:
-        """weigh_keyframe's information, from the clouds of this keyframe and the one before
-        (add() in keyframe order)."""
+        """The information of the odometry edge into kf_id (kept in the result), or None (the
+        configured sigmas), from the clouds of this keyframe and the one before; keyframes in
+        order, as stored (a run without loops as it makes them, a resumed run replays them)."""
         raw = None if self.edge_information is None else \
             self.edge_information.add(T_world_kf, points)
         return self._widened(kf_id, raw)
@@ -271,15 +265,6 @@ class Pipeline:
         """Keyframe kf_id into the back-end's graph with its odometry edge's information."""
         info = self._widened(kf_id, raw)
         self.backend.add_keyframe(kf_id, self.result.store.T_world_kf_odom(kf_id), info)
-
-    def _stored_edge(self, kf_id: int) -> np.ndarray | None:
-        """The clouds' information of the edge into kf_id, from the store (None: the
-        configured sigmas)."""
-        if self.edge_information is None or kf_id == 0:
-            return None
-        prev, kf = self.result.store.get(kf_id - 1), self.result.store.get(kf_id)
-        return self.edge_information.between(prev.T_world_kf_odom, prev.points,
-                                             kf.T_world_kf_odom, kf.points)
 
     def _apply_loops(self, upto: int) -> None:
         """Collect the loop results of keyframes <= upto (in order) and update the back-end."""
@@ -359,7 +344,8 @@ class Pipeline:
                     self.backend.add_keyframe(kf_id, r.store.T_world_kf_odom(kf_id),
                                               r.odom_information.get(kf_id))
                 else:  # stopped between the store and the worker
-                    self._add_node(kf_id, self._stored_edge(kf_id))
+                    self._add_node(kf_id, None if self.edge_information is None
+                                   else self.edge_information.stored(r.store, kf_id))
             r.kf_poses = self.backend.finish()
             r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s

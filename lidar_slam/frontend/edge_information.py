@@ -53,7 +53,8 @@ def information(fit_hessian: np.ndarray, rms_m: float, cfg: OdometryInformationC
 class EdgeInformation:
     """add(T_world_kf, points) for each keyframe in order -> the information of the edge from the
     previous keyframe to it (None for the first, or when either cloud is empty or too thin:
-    the caller then uses the configured sigmas); between() for any two consecutive ones."""
+    the caller then uses the configured sigmas); between() for any two consecutive ones, stored()
+    for two in a keyframe store."""
 
     def __init__(self, cfg: OdometryInformationConfig, cloud_voxel_m: float):
         self.cfg = cfg
@@ -66,6 +67,14 @@ class EdgeInformation:
         if prev is None:
             return None
         return self.between(prev[0], prev[1], T_world_kf, self._prev[1])
+
+    def stored(self, store, kf_id: int) -> np.ndarray | None:
+        """The information of the edge into keyframe kf_id from a keyframe store's clouds and
+        odometry poses (map.keyframes.KeyframeStore or KeyframeReader; None for the first)."""
+        if kf_id == 0:
+            return None
+        prev, kf = store.get(kf_id - 1), store.get(kf_id)
+        return self.between(prev.T_world_kf_odom, prev.points, kf.T_world_kf_odom, kf.points)
 
     def between(self, T_world_prev: np.ndarray, prev_points: np.ndarray, T_world_kf: np.ndarray,
                 points: np.ndarray) -> np.ndarray | None:

@@ -161,12 +161,8 @@ class LoopDetector:
         clouds and poses of kf_id - 1 and kf_id: what the pipeline's back-end takes; None: the
         configured sigmas)."""
         if kf_id not in self._edge_info:
-            info = None
-            if self._edges is not None and kf_id > 0:
-                prev, kf = self.store.get(kf_id - 1), self.store.get(kf_id)
-                info = self._edges.between(prev.T_world_kf_odom, prev.points,
-                                           kf.T_world_kf_odom, kf.points)
-            self._edge_info[kf_id] = info
+            self._edge_info[kf_id] = (None if self._edges is None
+                                      else self._edges.stored(self.store, kf_id))
         return self._edge_info[kf_id]
 
     def _edge_covariance(self, kf_id: int) -> np.ndarray:

@@ -119,6 +119,16 @@ def _start_process(cfg_json: dict, store_root: str, parent_pid: int) -> None:
     _DETECTOR = LoopDetector(SlamConfig(**cfg_json), KeyframeReader(store_root))
 
 
+def kill_pool(pool: ProcessPoolExecutor) -> None:
+    """End a one-process helper pool (the loop worker, the top-view painter): its process
+    killed (it ignores SIGTERM), then the pool shut down. For a helper that is idle (its
+    results collected, its files written unbuffered or atomically), or whose work is no longer
+    wanted: a graceful exit would only tear down its imports."""
+    for proc in list(pool._processes.values()):
+        proc.kill()
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
 def is_urgent(backlog: int, lag: int, frames_left: int | None) -> bool:
     """Whether a backlog of unfinished keyframes needs the odometry's priority (see
     URGENT_LAG_SHARE)."""
@@ -259,12 +269,10 @@ class LoopWorker:
             self._urgent = False
         self._pid = None
         if self._pool is not None:
-            if self.mode == "process":
-                # Killed: its results are collected (or no longer wanted), its descriptors
-                # written unbuffered; a graceful exit only tears down its imports (30-60 ms).
-                for proc in list(self._pool._processes.values()):
-                    proc.kill()  # (it ignores SIGTERM)
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            if self.mode == "process":  # its results collected or no longer wanted (30-60 ms)
+                kill_pool(self._pool)
+            else:
+                self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
         if self.detector is not None:
             self.detector.index.close()

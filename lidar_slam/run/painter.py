@@ -62,11 +62,11 @@ def _draw(path: str, poses: np.ndarray, map_ply: str | None) -> None:
 
 
 def _end(pool: ProcessPoolExecutor) -> None:
-    """End a helper: killed (one that drew nothing may still be importing at SCHED_IDLE, which
-    on a loaded machine would keep the run's exit waiting), then its pool shut down."""
-    for proc in list(pool._processes.values()):
-        proc.kill()  # (it ignores SIGTERM, as the loop worker)
-    pool.shutdown(wait=True, cancel_futures=True)
+    """End the helper, killed (loop.worker.kill_pool; one that drew nothing may still be
+    importing at SCHED_IDLE, which on a loaded machine would keep the run's exit waiting)."""
+    from lidar_slam.loop.worker import kill_pool
+
+    kill_pool(pool)
 
 
 class TopViewPainter:
