@@ -199,6 +199,46 @@ def test_bin_with_wrong_size(tmp_path):
                               "(float32 x,y,z,intensity)")
 
 
+@pytest.mark.parametrize("layout,problem", [
+    ("float64", "holds float64 x, y, z, intensity (read as float32 x, y, z, intensity,"),
+    ("float64-xyz", "holds float64 x, y, z (read as float32"),
+    ("xyz", "the 4th column (intensity) is negative on")])
+def test_bin_in_another_layout_is_refused_not_read_as_a_cloud(tmp_path, layout, problem):
+    """float64 numbers and float32 without intensity (sizes that are multiples of 16 too) read
+    as float32 x, y, z, intensity rows: each is refused in one line."""
+    pts, inten = _cloud(n=1200)
+    data = {"float64": np.c_[pts, inten].astype(np.float64).tobytes(),
+            "float64-xyz": pts[:1000].astype(np.float64).tobytes(),
+            "xyz": pts.astype(np.float32).tobytes()}[layout]
+    (tmp_path / "x.bin").write_bytes(data)
+    with pytest.raises(InputError, match="x.bin: ") as err:
+        read_cloud(tmp_path / "x.bin")
+    assert problem in str(err.value)
+    # a cloud with a few points out of range (one in a hundred at most) still reads
+    rows = np.c_[pts, inten].astype(np.float32)
+    rows[:10, 0] = 3e19
+    rows.tofile(tmp_path / "ok.bin")
+    assert len(read_cloud(tmp_path / "ok.bin").points) == 1200
+
+
+def test_bin_of_random_bytes_is_an_empty_scan_with_a_warning(tmp_path, caplog):
+    """Bytes that are not numbers in any layout: the scan is skipped (the run goes on), not read
+    as a cloud of which a thousand points fall in range."""
+    (tmp_path / "x.bin").write_bytes(np.random.default_rng(3).bytes(16 * 1200))
+    assert len(read_cloud(tmp_path / "x.bin").points) == 0
+    assert "x.bin: " in caplog.text and "scan skipped" in caplog.text
+
+
+def test_non_finite_intensities_become_zero():
+    from lidar_slam.io.pointcloud import CloudData
+    from lidar_slam.io.sources import make_scan
+
+    inten = np.ones(10, np.float32)
+    inten[[2, 5]] = [np.nan, np.inf]
+    scan = make_scan(0, 1.0, CloudData(np.ones((10, 3)), None, inten), "x")
+    np.testing.assert_array_equal(scan.intensity, [1, 1, 0, 1, 1, 0, 1, 1, 1, 1])
+
+
 @pytest.mark.parametrize("name,content", [("bad.pcd", b"garbage\x00\x01"),
                                           ("bad.ply", b"not a ply"),
                                           ("trunc.pcd", (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n"
@@ -324,6 +364,23 @@ def test_reference_poses_with_nan_are_refused(tmp_path):
         read_kitti_poses(tmp_path / "poses.txt")
 
 
+def test_poses_that_are_not_rigid_motions_are_refused(tmp_path):
+    """A scaled or all-zero rotation (KITTI rows) or a quaternion of norm 0 (TUM) would be
+    scored as if it were a pose: one line naming the pose instead."""
+    from lidar_slam.io.trajectory import read_kitti_poses, read_tum
+
+    for bad in (2 * np.eye(3), np.zeros((3, 3)), np.diag([1.0, 1.0, -1.0])):
+        rows = np.tile(np.eye(4)[:3].ravel(), (3, 1))
+        rows[2] = np.c_[bad, [1.0, 2.0, 3.0]].ravel()
+        np.savetxt(tmp_path / "poses.txt", rows)
+        with pytest.raises(InputError, match="poses.txt: pose 3: not a rigid motion"):
+            read_kitti_poses(tmp_path / "poses.txt")
+    rows = np.array([[0.0, 0, 0, 0, 0, 0, 0, 1], [0.1, 1, 0, 0, 0, 0, 0, 0]])
+    np.savetxt(tmp_path / "p.tum", rows)
+    with pytest.raises(InputError, match="p.tum: pose 2: .* norm is not 1"):
+        read_tum(tmp_path / "p.tum")
+
+
 PCD_XYZ = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH %d\n"
            b"HEIGHT 1\nPOINTS %d\nDATA %s\n")
 PLY_XYZ = (b"ply\nformat %s 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
@@ -378,3 +435,28 @@ def test_npy_files_that_numpy_cannot_read_as_points_are_one_error(tmp_path):
     for name in ("empty.npy", "huge.npy", "text.npy", "complex.npy"):
         with pytest.raises(InputError, match=name):
             read_cloud(tmp_path / name)
+
+
+def test_part_of_a_kitti_sequence_beside_its_whole_poses_and_times(tmp_path, caplog):
+    """Scans 000005..000007 of a sequence whose poses.txt and times.txt cover all 10 frames: each
+    scan's number picks its line (one warning each); names that are not line numbers are one
+    error."""
+    from lidar_slam.io.sources import KittiSource
+
+    seq = tmp_path / "00"
+    (seq / "velodyne").mkdir(parents=True)
+    pts, inten = _cloud()
+    for k in (5, 6, 7):
+        np.c_[pts, inten].astype(np.float32).tofile(seq / "velodyne" / f"{k:06d}.bin")
+    (seq / "calib.txt").write_text("Tr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    rows = np.tile(np.eye(4)[:3].ravel(), (10, 1))
+    rows[:, 3] = np.arange(10)
+    np.savetxt(seq / "poses.txt", rows)
+    np.savetxt(seq / "times.txt", 0.1 * np.arange(10))
+    src = KittiSource(seq)
+    np.testing.assert_allclose(src.ground_truth[:, 0, 3], [5, 6, 7])
+    np.testing.assert_allclose(src.stamps, [0.5, 0.6, 0.7])
+    assert caplog.text.count("each scan's number picks its line (000005..000007)") == 2
+    (seq / "velodyne" / "000007.bin").rename(seq / "velodyne" / "x.bin")
+    with pytest.raises(InputError, match="times.txt: has 10 stamps for 3 scans, and the scans'"):
+        KittiSource(seq)

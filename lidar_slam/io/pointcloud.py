@@ -47,7 +47,54 @@ def read_bin(path: Path) -> CloudData:
     # the non-finite points and says so, naming the file.
     with np.errstate(invalid="ignore"):
         points = data[:, :3].astype(np.float64)
+    if not _check_bin_layout(path, size, points, data[:, 3]):
+        return CloudData(np.zeros((0, 3)), None, np.zeros(0, np.float32))
     return CloudData(points, None, data[:, 3].copy())
+
+
+BIN_MAX_COORD_M = 1e5  # no lidar measures 100 km: a coordinate beyond is a misread number
+BIN_MAX_SHARE = 0.01  # of the points with one: more is a file in another layout
+
+
+def _check_bin_layout(path: Path, size: int, points: np.ndarray, fourth: np.ndarray) -> bool:
+    """Whether the .bin reads as float32 x, y, z, intensity (False: bytes that are not numbers,
+    to be skipped with a warning); raises on the layouts that otherwise read as a cloud: float64
+    numbers (each splits into two float32, one of them garbage: coordinates of 1e19 m) and
+    float32 x, y, z only (the rows shift by a column: the 'intensity' is a coordinate, negative
+    on about half the points). One point in a hundred may be out of range (a sensor's glitch,
+    then cropped by data.max_range_m)."""
+    n = len(points)
+    if n == 0:
+        return True
+    with np.errstate(invalid="ignore"):
+        far = int((np.abs(points) > BIN_MAX_COORD_M).any(axis=1).sum())
+        negative = int((fourth < 0).sum())
+    if far > BIN_MAX_SHARE * n:
+        for columns, layout in ((4, "float64 x, y, z, intensity"), (3, "float64 x, y, z")):
+            if size % (8 * columns) == 0 and _plausible_float64(path, columns):
+                raise InputError(path, f"holds {layout} (read as float32 x, y, z, intensity, "
+                                 f"{100 * far / n:.0f} % of the points lie beyond "
+                                 f"{BIN_MAX_COORD_M / 1e3:g} km); a .bin holds float32 x, y, "
+                                 f"z, intensity")
+        log.warning("%s: %.0f %% of its points lie beyond %g km: not float32 x, y, z, intensity "
+                    "numbers; scan skipped", path, 100 * far / n, BIN_MAX_COORD_M / 1e3)
+        return False
+    if size % 12 == 0 and negative > 0.1 * n:
+        raise InputError(path, f"the 4th column (intensity) is negative on {100 * negative / n:.0f}"
+                         f" % of the points: float32 x, y, z without intensity? (a .bin holds "
+                         f"float32 x, y, z, intensity)")
+    return True
+
+
+def _plausible_float64(path: Path, columns: int) -> bool:
+    """Whether the file read as float64 rows of `columns` numbers is a cloud: finite, within
+    BIN_MAX_COORD_M, a non-negative 4th column."""
+    rows = np.fromfile(path, dtype="<f8").reshape(-1, columns)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(rows).all(axis=1) & (np.abs(rows[:, :3]) <= BIN_MAX_COORD_M).all(axis=1)
+        if columns == 4:
+            ok &= rows[:, 3] >= 0
+    return bool(ok.mean() > 1 - BIN_MAX_SHARE)
 
 
 # open3d's PCD and PLY readers allocate the point tensors the header asks for and, when the data
@@ -449,4 +496,8 @@ def make_scan(index: int, stamp_s: float, cloud: CloudData, source: str) -> Scan
         inten = inten[finite] if inten is not None else None
     if times is not None and not np.isfinite(times).all():
         times = None
+    if inten is not None and not np.isfinite(inten).all():
+        bad = ~np.isfinite(inten)
+        log.warning("%s: %d NaN/inf intensities set to 0", source, int(bad.sum()))
+        inten = np.where(bad, 0, inten).astype(inten.dtype)
     return Scan(index, float(stamp_s), points, times, inten, source)

@@ -73,14 +73,31 @@ def _scan_files(folder: Path) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def _load_stamps(path: Path, n: int) -> np.ndarray | None:
-    """Scan stamps (s) from a times file with one line per scan; None when there is none."""
+def _load_stamps(path: Path, n: int, files: list[Path] | None = None) -> np.ndarray | None:
+    """Scan stamps (s) from a times file with one line per scan; None when there is none.
+    files: KITTI scans, whose numbers pick their lines from a longer file."""
     if not path.is_file():
         return None
     stamps = read_times(path)
+    if files is not None:
+        stamps = _lines_of(path, stamps, files, "stamps")
     if len(stamps) != n:
         raise InputError(path, f"has {len(stamps)} stamps for {n} scans")
     return stamps
+
+
+def _lines_of(path: Path, rows: np.ndarray, files: list[Path], what: str) -> np.ndarray:
+    """rows as many as files, or a part of a KITTI sequence beside its whole file (times.txt,
+    poses): each scan's number (000123.bin) picks its line, said in one warning."""
+    if len(rows) <= len(files):
+        return rows
+    numbers = [p.stem for p in files]
+    if not all(n.isdigit() and int(n) < len(rows) for n in numbers):
+        raise InputError(path, f"has {len(rows)} {what} for {len(files)} scans, and the scans' "
+                               f"names are not the lines to take")
+    log.warning("%s: %d %s for %d scans: each scan's number picks its line (%s..%s)", path,
+                len(rows), what, len(files), numbers[0], numbers[-1])
+    return rows[[int(n) for n in numbers]]
 
 
 def _assumed_stamps(path: Path, n: int) -> np.ndarray:
@@ -171,14 +188,14 @@ class KittiSource(StreamsBesideScans):
             raise InputError(root / "velodyne", "no .bin scans found")
         self.vertical_correction = vertical_correction
         self.Tr = read_kitti_calib_tr(root / "calib.txt")
-        stamps = _load_stamps(root / "times.txt", len(self.files))
+        stamps = _load_stamps(root / "times.txt", len(self.files), self.files)
         self.stamps_known = stamps is not None
         self.stamps = stamps if stamps is not None else _assumed_stamps(root / "times.txt",
                                                                           len(self.files))
         self.ground_truth = None
         for cand in (root / "poses.txt", root.parent.parent / "poses" / f"{root.name}.txt"):
             if cand.is_file():
-                poses_cam = read_kitti_poses(cand)
+                poses_cam = _lines_of(cand, read_kitti_poses(cand), self.files, "poses")
                 if len(poses_cam) != len(self.files):
                     raise InputError(cand, f"has {len(poses_cam)} poses for "
                                            f"{len(self.files)} scans")
@@ -197,7 +214,7 @@ class KittiSource(StreamsBesideScans):
         cloud = read_bin(path)
         tfile = self.root / "velodyne_times" / path.name
         times = None
-        if tfile.is_file():
+        if tfile.is_file() and len(cloud.points):  # (none: an empty or a skipped scan)
             try:
                 raw = np.fromfile(tfile, dtype=np.float32)
             except OSError as exc:

@@ -20,6 +20,9 @@ def _loadtxt(path: Path, **kwargs) -> np.ndarray:
         return np.loadtxt(path, **kwargs)
 
 
+RIGID_TOL = 1e-3  # |R R^T - I| or |q| - 1: files write 6-9 digits; KITTI's are rigid to 1e-7
+
+
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     """(K, 4, 4) poses from a KITTI pose file (row-major 3x4 per line)."""
     p = Path(path)
@@ -38,6 +41,12 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
         raise InputError(p, f"pose {bad[0] + 1}: NaN or infinite values")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :4] = data.reshape(-1, 3, 4)
+    R = poses[:, :3, :3]
+    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((off > RIGID_TOL) | (np.linalg.det(R) < 0))
+    if len(bad):
+        raise InputError(p, f"pose {bad[0] + 1}: not a rigid motion (its 3x3 rotation is not "
+                            f"orthonormal with determinant +1)")
     return poses
 
 
@@ -59,6 +68,11 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(p, f"not a TUM pose file ({exc})") from exc
     if data.size == 0 or data.shape[1] != 8:
         raise InputError(p, "expected 8 numbers per line (stamp tx ty tz qx qy qz qw)")
+    norm = np.linalg.norm(data[:, 4:8], axis=1)
+    bad = np.flatnonzero(~np.isfinite(data).all(axis=1) | (np.abs(norm - 1) > RIGID_TOL))
+    if len(bad):
+        raise InputError(p, f"pose {bad[0] + 1}: NaN or infinite values, or a quaternion whose "
+                            f"norm is not 1 ({norm[bad[0]]:.6g})")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :3] = matrix_from_quat(data[:, 4:8])
     poses[:, :3, 3] = data[:, 1:4]
