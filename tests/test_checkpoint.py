@@ -141,3 +141,31 @@ def test_a_run_killed_anywhere_ten_times_ends_as_if_never_killed(tmp_path):
     left = [p.pid for p in psutil.process_iter(["cmdline"])
             if any(str(tmp_path) in a for a in p.info["cmdline"] or ())]
     assert not left
+
+
+def test_a_run_stopped_by_a_signal_resumes_from_where_it_stopped(tmp_path, monkeypatch):
+    """Ctrl-C (or a bad scan) writes a checkpoint of every frame so far, not only the periodic
+    one (every 100 keyframes): --resume goes on from that frame and ends with the bytes of the
+    run never stopped (poses, odometry, loops, covariances)."""
+    from lidar_slam import pipeline
+    from lidar_slam.run import run_sequence
+
+    files = ("poses_kitti.txt", "odometry_kitti.txt", "loops.csv", "covariances.csv")
+    whole = run_sequence(SAMPLE, tmp_path / "whole", progress=False)
+    assert whole.failure is None
+    process, seen = pipeline.Pipeline.process, []
+
+    def stopped_at_30(self, scan):
+        if len(seen) == 30:
+            raise KeyboardInterrupt
+        seen.append(scan.index)
+        return process(self, scan)
+
+    monkeypatch.setattr(pipeline.Pipeline, "process", stopped_at_30)
+    first = run_sequence(SAMPLE, tmp_path / "run", progress=False)
+    assert first.failure is not None and first.failure.exit_code == 130
+    monkeypatch.setattr(pipeline.Pipeline, "process", process)
+    resumed = run_sequence(SAMPLE, tmp_path / "run", resume=True, progress=False)
+    assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 30
+    for name in files:
+        assert (tmp_path / "run" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()

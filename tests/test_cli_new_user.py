@@ -65,18 +65,33 @@ def test_an_unreadable_scan_is_one_line_naming_it_and_exit_2(tmp_path, monkeypat
 
 
 def test_resume_with_no_checkpoint_says_it_starts_over(tmp_path):
-    """--resume on a folder with no run, and on a run that ended before its first checkpoint:
-    one warning line each, then the run from the first scan (documented in the README)."""
+    """--resume on a folder with no run, on a finished run, on a run that ended before its
+    first checkpoint and on a folder of someone else's files: one line each; it starts over,
+    does nothing, starts over, and refuses (documented in the README)."""
     out = tmp_path / "o"
     proc = lidar_slam("run", SAMPLE, "--out", out, *FEW, "--resume")
     assert proc.returncode == 0, proc.stderr
     assert f"WARNING lidar_slam: --resume: {out} holds no run; starting from the first scan" \
         in proc.stderr
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    proc = lidar_slam("run", SAMPLE, "--out", out, *FEW, "--resume")
+    assert proc.returncode == 0, proc.stderr
+    said = [ln for ln in proc.stderr.splitlines() if "--resume" in ln]
+    assert len(said) == 1 and f"the run in {out} had already finished" in said[0], proc.stderr
+    assert f"nothing to resume in {out}: finished before" in proc.stdout
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    (out / "summary.json").unlink()  # as a run killed before its first checkpoint leaves it
     proc = lidar_slam("run", SAMPLE, "--out", out, *FEW, "--resume")
     assert proc.returncode == 0, proc.stderr
     said = [ln for ln in proc.stderr.splitlines() if "--resume" in ln]
     assert len(said) == 1 and f"no checkpoint in {out}" in said[0] \
         and "starting over from the first scan" in said[0], proc.stderr
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "poses_kitti.txt").write_text("their own\n")
+    proc = lidar_slam("run", SAMPLE, "--out", theirs, *FEW, "--resume")
+    assert_one_line_error(proc, str(theirs), "--resume: holds files but no lidar-slam run")
+    assert (theirs / "poses_kitti.txt").read_text() == "their own\n"
 
 
 def test_a_scan_of_garbage_bytes_warns_naming_it_with_no_numpy_warning(tmp_path):
@@ -114,3 +129,20 @@ def test_a_config_typo_is_one_line_with_did_you_mean(tmp_path, text, hint):
     cfg.write_text(text)
     assert_one_line_error(lidar_slam("run", SAMPLE, "--out", tmp_path / "o", "--config", cfg),
                           str(cfg), hint)
+
+
+def test_an_out_that_is_an_input_is_refused_before_anything_is_deleted(tmp_path):
+    """--out naming the input folder, the map a run extends or the map localize reads (with
+    --overwrite, which would delete their files first): one line, exit 2, nothing touched."""
+    data = sample_copy(tmp_path)
+    proc = lidar_slam("run", data, "--out", data, *FEW, "--overwrite")
+    assert_one_line_error(proc, f"{data}: --out is the input; write the outputs to another folder")
+    assert not (data / "map.ply").exists()
+    run = tmp_path / "map"
+    assert lidar_slam("run", data, "--out", run, *FEW).returncode == 0
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    proc = lidar_slam("run", data, "--extend", run, "--out", run, *FEW, "--overwrite")
+    assert_one_line_error(proc, f"{run}: --out is the map to extend")
+    proc = lidar_slam("localize", data, "--map", run, "--out", run, "--overwrite")
+    assert_one_line_error(proc, f"{run}: --out is the map; write the outputs to another folder")
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before

@@ -51,9 +51,11 @@ def run(
     run_dir = out
     if extend is not None:
         from lidar_slam.merge.build import MERGE_OUTPUTS, sessions_of
-        from lidar_slam.run.outdir import prepare_out_dir
+        from lidar_slam.run.outdir import prepare_out_dir, refuse_input_as_out
 
-        sessions_of(extend)  # a bad MAP is refused before the run, not after
+        sessions, _ = sessions_of(extend)  # a bad MAP is refused before the run, not after
+        refuse_input_as_out(out, {"map to extend": extend, "input": data,
+                                  **{f"map's session {s}": s for s in sessions}})
         prepare_out_dir(out, (*MERGE_OUTPUTS, "run"), overwrite, resume)
         run_dir = out / "run"
     outcome = run_sequence(data, run_dir, config=config, start=start, n_scans=n_scans, topic=topic,
@@ -69,7 +71,8 @@ def run(
         kept = sum(s["kept"] for s in result.sessions)
         typer.echo(f"merged with {extend}: {kept} of {len(result.sessions)} sessions kept, "
                    f"{result.loops} loops between them")
-    typer.echo(f"wrote {out}")
+    typer.echo(f"nothing to resume in {run_dir}: finished before" if outcome.finished_before
+               else f"wrote {out}")
     if outcome.failure is not None:
         raise outcome.failure
 

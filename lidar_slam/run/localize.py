@@ -3,14 +3,17 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from lidar_slam.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, LidarSlamError, RunFailed
-from lidar_slam.run.outdir import prepare_out_dir, scan_range
+from lidar_slam.run.outdir import prepare_out_dir, refuse_input_as_out, scan_range
 from lidar_slam.run.progress import progress as make_progress
 from lidar_slam.run.signals import StopSignals
+
+log = logging.getLogger(__name__)
 
 
 def parse_initial_pose(text: str | None):
@@ -57,11 +60,12 @@ def localize_sequence(data: Path, map_dir: Path, out: Path, *, config: Path | No
     localised (nothing written)."""
     from lidar_slam import __version__
     from lidar_slam.io.sources import open_source, read_ahead
-    from lidar_slam.localize import Localizer
+    from lidar_slam.localize import Localizer, Status
     from lidar_slam.map.saved import open_map
     from lidar_slam.provenance import git_commit
     from lidar_slam.run.outputs import LOCALIZE_OUTPUTS, write_localization
 
+    refuse_input_as_out(out, {"map": map_dir, "input": data})
     T_init = parse_initial_pose(initial_pose)
     t0 = time.perf_counter()
     saved = open_map(map_dir, config)
@@ -97,7 +101,15 @@ def localize_sequence(data: Path, map_dir: Path, out: Path, *, config: Path | No
                 raise RunFailed(error or f"{data}: no scan localised; nothing written",
                                 EXIT_INTERRUPTED if stop.received and not error
                                 else EXIT_BAD_INPUT)
-            summary = write_localization(out, frames, {
+            located = any(f.status != Status.LOST for f in frames)
+            lost = sum(f.status == Status.LOST for f in frames)
+            if lost and located:
+                log.warning("%d of %d frames lost (status.csv): their poses are the motion "
+                            "model's prediction, or before the first localisation the initial "
+                            "pose (the map origin without one)", lost, len(frames))
+            # None localised: their poses would be the initial pose (or the map origin) repeated,
+            # not a result; status.csv and the summary say what was tried.
+            summary = write_localization(out, frames, poses=located, summary={
                 **_stats(loc, frames, time.perf_counter() - t0, load_s, loop_s),
                 "map": str(map_dir), "map_keyframes": len(saved),
                 "input": str(data), "input_kind": source.kind,
@@ -105,7 +117,11 @@ def localize_sequence(data: Path, map_dir: Path, out: Path, *, config: Path | No
                 "interrupted": stop.received, "stopped_by_error": error,
                 "version": __version__, "git_commit": git_commit()})
     failure = None
-    if error:
+    if not located and not stop.received and not error:
+        failure = RunFailed(f"{data}: none of its {len(frames)} frames localised in the map "
+                            f"{map_dir} (another place, or give --initial-pose); {out} holds "
+                            f"status.csv and summary.json, no poses")
+    elif error:
         failure = RunFailed(f"{error} (stopped there; frames so far written to {out})")
     elif stop.received:
         failure = RunFailed(f"interrupted; the {len(frames)} frames so far written to {out}",

@@ -42,6 +42,22 @@ def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: b
     return False
 
 
+def refuse_input_as_out(out: Path, inputs: dict[str, Path | None]) -> None:
+    """--out may not be one of the command's inputs ({what: path}), nor hold one: --overwrite
+    would delete the input's files before they are read, and the outputs written into an
+    input folder would be read back as its data next time."""
+    o = out.resolve()
+    for what, path in inputs.items():
+        if path is None:
+            continue
+        p = Path(path).resolve()
+        if p == o:
+            raise RunFailed(f"{out}: --out is the {what}; write the outputs to another folder")
+        if o in p.parents and p.relative_to(o).parts[0] in RUN_OUTPUTS + ("run",):
+            raise RunFailed(f"{out}: --out holds the {what} ({path}); write the outputs to "
+                            f"another folder")
+
+
 def discard_run(out: Path, created: bool) -> None:
     """Remove what a run that produced no frame wrote (and --out itself if the run made it), so
     no 0-frame run folder is left behind."""

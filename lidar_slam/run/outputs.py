@@ -234,16 +234,17 @@ def write_gnss_fixes(path: Path, fixes: list) -> None:
 LOCALIZE_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "status.csv", "summary.json")
 
 
-def write_localization(out_dir: Path, frames: list, summary: dict) -> dict:
-    """The outputs of `localize` (LOCALIZE_OUTPUTS): poses in the map frame and status.csv, one
-    line per input frame, and the summary (returned, with the frame counts added)."""
+def write_localization(out_dir: Path, frames: list, summary: dict, poses: bool = True) -> dict:
+    """The outputs of `localize` (LOCALIZE_OUTPUTS): poses in the map frame (unless poses is
+    False: none localised) and status.csv, one line per input frame, and the summary (returned,
+    with the frame counts added)."""
     from lidar_slam.localize import Status
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    poses = np.stack([f.T_map_scan for f in frames]) if frames else np.zeros((0, 4, 4))
-    stamps = np.array([f.stamp_s for f in frames])
-    write_kitti_poses(out_dir / "poses_kitti.txt", poses)
-    write_tum(out_dir / "poses_tum.txt", stamps, poses)
+    if poses:
+        T = np.stack([f.T_map_scan for f in frames]) if frames else np.zeros((0, 4, 4))
+        write_kitti_poses(out_dir / "poses_kitti.txt", T)
+        write_tum(out_dir / "poses_tum.txt", np.array([f.stamp_s for f in frames]), T)
     with atomic_path(out_dir / "status.csv") as tmp, open(tmp, "w", newline="") as fh:
         rows = csv.writer(fh)
         rows.writerow(["frame", "stamp_s", "status", "fitness"])

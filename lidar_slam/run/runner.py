@@ -8,6 +8,7 @@ early carries its one-line RunFailed (a run that wrote nothing raises it).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -16,7 +17,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lidar_slam.errors import EXIT_INTERRUPTED, LidarSlamError, RunFailed
-from lidar_slam.run.outdir import RUN_OUTPUTS, discard_run, prepare_out_dir, scan_range
+from lidar_slam.run.outdir import (
+    RUN_OUTPUTS,
+    discard_run,
+    prepare_out_dir,
+    refuse_input_as_out,
+    scan_range,
+)
 from lidar_slam.run.progress import progress as make_progress
 from lidar_slam.run.signals import StopSignals
 
@@ -100,6 +107,11 @@ def _process_scans(pipe, scans, out: Path, stop: StopSignals, progress) -> _Loop
     finally:
         progress.close()
         stream.close()
+    if every and (stop.received or end.error) and not end.internal_error and len(pipe.result.store):
+        # Stopped by a signal or a bad scan: a checkpoint of every frame so far, so that
+        # --resume goes on from here instead of from the last periodic one (or the start).
+        with stop.deferred():
+            checkpoint.save(out, pipe, pipe.loops_applied_upto)
     return end
 
 
@@ -189,6 +201,24 @@ class RunOutcome:
     summary: dict
     ground_truth: object | None
     failure: RunFailed | None = None
+    finished_before: bool = False  # --resume of a run that had already finished: nothing done
+
+
+def _finished(out: Path, identity: dict) -> bool:
+    """Whether out holds this same run (input, range, config), finished at the input's end."""
+    from lidar_slam.run import checkpoint
+
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return False
+    if not (isinstance(summary, dict) and summary.get("stopped") == "end of input"
+            and (out / "poses_kitti.txt").is_file()
+            and (out / "checkpoint" / "run.json").is_file()
+            and not checkpoint.has_checkpoint(out)):
+        return False
+    checkpoint.check_same_run(out, identity)  # another input or config: refused, as ever
+    return True
 
 
 def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
@@ -199,8 +229,12 @@ def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
     if resume and not resuming:  # a missing or empty --out: nothing was ever run there
         log.warning("--resume: %s holds no run; starting from the first scan", out)
     if resuming and not checkpoint.has_checkpoint(out):
-        if (out / "checkpoint" / "run.json").is_file():
-            checkpoint.check_same_run(out, identity)
+        if not (out / "checkpoint" / "run.json").is_file():
+            # Files, but not a run of ours: starting over would delete those named like ours.
+            raise RunFailed(f"{out}: --resume: holds files but no lidar-slam run (no "
+                            f"checkpoint/run.json); pass another --out, or --overwrite to "
+                            f"replace the files named like a run's")
+        checkpoint.check_same_run(out, identity)
         # Killed before its first checkpoint (every checkpoint.every_keyframes keyframes), or
         # a run that ended before it: the same run again from the start, said in one line.
         log.warning("--resume: no checkpoint in %s (the run there stopped before its first: "
@@ -233,6 +267,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     from lidar_slam.run.outputs import write_run
     from lidar_slam.run.painter import TopViewPainter
 
+    refuse_input_as_out(out, {"input": data})
     cfg = load_config(config, overrides)
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction, meta=meta)
@@ -247,6 +282,11 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
     if meta is not None:
         identity["meta"] = str(Path(meta).resolve())
+    if resume and _finished(out, identity):
+        log.warning("--resume: the run in %s had already finished (its summary.json: end of "
+                    "input); nothing to do (--overwrite runs it again)", out)
+        summary = json.loads((out / "summary.json").read_text())
+        return RunOutcome(summary, source.ground_truth, finished_before=True)
     painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
     resuming = _resuming(out, identity, overwrite, resume)
     visualizer = open_viewer(viz, rrd)
