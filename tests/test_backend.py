@@ -646,3 +646,16 @@ def test_backend_sesync_weights_reach_the_published_optimum(posegraphs):
     assert report.init == "lago"
     assert report.sesync_objective == pytest.approx(31.70, rel=2e-3)
     assert report.final_error == pytest.approx(report.sesync_objective, rel=1e-3)
+
+
+def test_a_graph_in_unconnected_parts_is_one_line(tmp_path):
+    """Only the first node is anchored: a part no edge joins to it would be left where the file
+    put it (or be an indeterminate system), so the file is refused naming a node of that part."""
+    path = tmp_path / "two.g2o"
+    path.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 5 5 0\n"
+                    "VERTEX_SE2 3 6 5 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"
+                    "EDGE_SE2 2 3 2 0 0 1 0 0 1 0 1\n")
+    with pytest.raises(InputError, match="in 2 unconnected parts .* joins node 2 to node 0"):
+        read_g2o(path)
+    with pytest.raises(InputError, match="is a folder, not a g2o file"):
+        read_g2o(tmp_path)

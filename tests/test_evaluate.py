@@ -237,3 +237,23 @@ def test_evaluate_plots_drift_against_segment_length(tmp_path):
     png = tmp_path / "out" / "drift_vs_length.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list((tmp_path / "out").glob(".*.tmp"))  # written via a temporary file
+
+
+def test_eval_takes_the_runs_own_start_and_refuses_another(tmp_path):
+    """A run's pose file with its summary.json beside it: eval pairs from the run's --start
+    when none is given, and refuses a different one (every pose against another scan's truth)."""
+    import json
+
+    from lidar_slam.cli.eval import _run_start
+    from lidar_slam.errors import RunFailed
+
+    est = tmp_path / "poses_kitti.txt"
+    assert _run_start(est, None) is None and _run_start(est, 3) == 3  # no summary: as given
+    (tmp_path / "summary.json").write_text(json.dumps({"start": 5}))
+    assert _run_start(est, None) == 5 and _run_start(est, 5) == 5
+    with pytest.raises(RunFailed, match="--start 2, but the run was made with --start 5"):
+        _run_start(est, 2)
+    (tmp_path / "summary.json").write_text(json.dumps({"start": 0}))
+    assert _run_start(est, None) is None and _run_start(est, 0) == 0
+    with pytest.raises(RunFailed, match="made with --start 0"):
+        _run_start(est, 4)

@@ -120,6 +120,13 @@ def test_export_las_laz_pcd_ply(sim_map, tmp_path):
     cloud = o3d.t.io.read_point_cloud(str(tmp_path / "out.bin"), format="ply")
     assert 0 < n == len(cloud.point.positions) < n_map / 3
     assert set(np.unique(cloud.point.keyframe.numpy())) <= set(range(n_kf))
+    # The package's own reader takes the export's int keyframe column (it used to count float
+    # columns only and read every point at the wrong offset).
+    from lidar_slam.io.ply import read_ply
+
+    pts, inten = read_ply(tmp_path / "out.bin")
+    np.testing.assert_array_equal(pts, cloud.point.positions.numpy().astype(np.float64))
+    np.testing.assert_array_equal(inten, cloud.point.intensity.numpy().ravel())
     # --out rule: an existing file is not replaced without --overwrite.
     proc = lidar_slam("export", sim_map.run, "--out", tmp_path / "map.pcd")
     assert proc.returncode == 2 and "--overwrite" in proc.stderr

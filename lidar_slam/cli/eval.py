@@ -49,9 +49,35 @@ def eval_cmd(
     """
     from lidar_slam.eval.evaluate import format_table, run_eval
 
+    start = _run_start(est, start)
     metrics = run_eval(est, gt, fmt=fmt.value, calib_path=calib, out_dir=out, loops_csv=loops,
                        start=start, gt_times=gt_times, revisit_gap=revisit_gap,
                        gt_label=gt_label)
     typer.echo(format_table(metrics))
     if out is not None:
         typer.echo(f"wrote {out}")
+
+
+def _run_start(est: Path, start: int | None) -> int | None:
+    """The --start of the run EST comes from, when EST is a run's own pose file (its
+    summary.json beside it says): taken when --start is not given, refused when it differs
+    (every pose would be paired with another scan's truth)."""
+    import json
+    import logging
+
+    from lidar_slam.errors import RunFailed
+
+    try:
+        summary = json.loads((Path(est).parent / "summary.json").read_text())
+        made = summary.get("start") if isinstance(summary, dict) else None
+    except (OSError, ValueError):
+        return start
+    if not isinstance(made, int) or isinstance(made, bool) or made == (start or 0) or (
+            start is None and made == 0):
+        return start
+    if start is None:
+        logging.getLogger("lidar_slam").info("%s: the run was made with --start %d (its "
+                                             "summary.json): scored from there", est, made)
+        return made
+    raise RunFailed(f"{est}: --start {start}, but the run was made with --start {made} (its "
+                    f"summary.json); pass --start {made}")

@@ -60,6 +60,8 @@ def optimize(
 
     if robust == Robust.huber and not huber_k > 0:
         raise fail(f"--huber-k must be positive, got {huber_k}")
+    if not out.parent.is_dir():
+        raise fail(f"{out}: cannot write it, {out.parent} is not a folder")
     rep = optimize_g2o(graph, out, robust=robust.value, huber_k=huber_k,
                        max_iterations=max_iterations, init=init.value, certify=certify.value,
                        weights=weights.value)

@@ -150,7 +150,8 @@ def read_g2o(path: str | Path) -> G2oGraph:
     """Read a 2D or 3D g2o pose graph; without VERTEX lines, chain (i, i+1) edges from identity."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "g2o file does not exist")
+        raise InputError(path, "is a folder, not a g2o file" if path.is_dir()
+                         else "g2o file does not exist")
     dims: int | None = None
     poses: dict[int, np.ndarray] = {}
     edges: list[G2oEdge] = []
@@ -206,8 +207,28 @@ def read_g2o(path: str | Path) -> G2oGraph:
                                            "VERTEX line")
     else:
         poses = _chain(nodes, edges, path)
+    _check_connected(poses, edges, path)
     assert dims is not None
     return G2oGraph(dims, poses, edges, n_vertex_lines, n_repaired)
+
+
+def _check_connected(poses: dict[int, np.ndarray], edges: list[G2oEdge], path: Path) -> None:
+    """One connected graph: only its first node is anchored, so a part without an edge to it
+    would float (left where the file put it, or an indeterminate system)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ids = sorted(poses)
+    at = {k: n for n, k in enumerate(ids)}
+    rows = [at[e.i] for e in edges]
+    cols = [at[e.j] for e in edges]
+    adj = coo_matrix((np.ones(len(edges)), (rows, cols)), shape=(len(ids), len(ids)))
+    n_parts, label = connected_components(adj, directed=False)
+    if n_parts > 1:
+        other = ids[int(np.flatnonzero(label != label[0])[0])]
+        raise InputError(path, f"the graph is in {n_parts} unconnected parts (no chain of edges "
+                               f"joins node {other} to node {ids[0]}); optimize needs one "
+                               f"connected pose graph")
 
 
 def _check_information(edges: list[G2oEdge], edge_lines: list[int], path: Path) -> int:

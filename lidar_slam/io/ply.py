@@ -16,6 +16,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from lidar_slam.errors import InputError
 from lidar_slam.io.atomic import atomic_path
 
 _PLY_TYPES = {np.dtype("<f4"): "float", np.dtype("<i4"): "int", np.dtype("<u4"): "uint"}
@@ -78,14 +79,40 @@ def copy_into_ply(path: str | Path, n: int, fields: Sequence[tuple[str, np.dtype
         shutil.copyfileobj(src, out, 1 << 24)
 
 
+_READ_TYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4",
+               "uint": "<u4", "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1",
+               "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
+               "float32": "<f4", "float64": "<f8"}
+
+
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N,3) float64 and intensity (N,) or None of a PLY of float32 x, y, z[, intensity]
-    (what write_xyz_ply and the run's map.ply hold)."""
+    """Points (N,3) float64 and intensity (N,) float32 or None of a binary little-endian PLY
+    whose first element is the vertices, with x, y, z and any other scalar properties (the
+    run's map.ply, `export`'s PLY with its keyframe column, write_xyz_ply's)."""
+    path = Path(path)
     with open(path, "rb") as fh:
-        header = []
+        header: list[str] = []
         while not header or header[-1] != "end_header":
-            header.append(fh.readline().decode("ascii").strip())
-        n = int(next(h.split()[2] for h in header if h.startswith("element vertex")))
-        ncol = sum(h.startswith("property float") for h in header)
-        rows = np.fromfile(fh, dtype="<f4", count=n * ncol).reshape(n, ncol)
-    return rows[:, :3].astype(np.float64), rows[:, 3].copy() if ncol == 4 else None
+            line = fh.readline()
+            if not line:
+                raise InputError(path, "not a PLY file (no end_header)")
+            header.append(line.decode("ascii", "replace").strip())
+        if header[0] != "ply" or "format binary_little_endian 1.0" not in header:
+            raise InputError(path, "read_ply reads binary little-endian PLY files only "
+                             "(open3d reads the others)")
+        elements = [i for i, h in enumerate(header) if h.startswith("element ")]
+        if not elements or header[elements[0]].split()[1] != "vertex":
+            raise InputError(path, "the first element of the PLY is not its vertices")
+        n = int(header[elements[0]].split()[2])
+        end = elements[1] if len(elements) > 1 else len(header)
+        props = [h.split() for h in header[elements[0] + 1:end] if h.startswith("property ")]
+        if any(len(p) != 3 or p[1] not in _READ_TYPES for p in props):
+            raise InputError(path, "a vertex property is a list or of an unknown type")
+        dtype = np.dtype([(p[2], _READ_TYPES[p[1]]) for p in props])
+        if not {"x", "y", "z"} <= set(dtype.names or ()):
+            raise InputError(path, "the vertices have no x, y, z")
+        rows = np.fromfile(fh, dtype=dtype, count=n)
+    if len(rows) < n:
+        raise InputError(path, f"truncated: {len(rows)} of {n} vertices")
+    points = np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float64)
+    return points, (rows["intensity"].astype(np.float32) if "intensity" in dtype.names else None)

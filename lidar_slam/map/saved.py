@@ -133,7 +133,8 @@ def open_map(run_dir: str | Path, overlay: str | Path | None = None) -> SavedMap
     kf_dir = root / "keyframes"
     manifest_path = kf_dir / "manifest.json"
     if not root.is_dir():
-        raise InputError(root, "map run folder does not exist")
+        raise InputError(root, "is a file, not a run folder" if root.exists()
+                         else "map run folder does not exist")
     if not manifest_path.is_file():
         raise InputError(root, "not a run folder with a map (no keyframes/manifest.json)")
     try:
