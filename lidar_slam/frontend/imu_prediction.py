@@ -59,7 +59,7 @@ import numpy as np
 from lidar_slam.config import ImuConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer, SweepMotion
 from lidar_slam.frontend.imu_check import ImuCheck
-from lidar_slam.frontend.odometry import OdometryResult
+from lidar_slam.frontend.odometry import OdometryResult, quantised
 from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import GRAVITY_MPS2, ImuStream, combined_params, gravity_rotation
 from lidar_slam.io.imu_gnss import GAP_PERIODS, ImuSamples
@@ -337,8 +337,11 @@ class ImuFrontend:
         t_stamp, t_ref = deskewed.scan.stamp_s, deskewed.scan.stamp_s + deskewed.ref_s
         f = (t_stamp - self.t_last) / (t_ref - self.t_last) if t_ref > self.t_last else 1.0
         correction = inverse(guess) @ odom.T_world_ref
-        T_world_stamp = (guess @ deskewed.motion.T_ref_at(-deskewed.ref_s)
-                         @ _towards(correction, f))
+        # Rounded as kiss-icp's pose is (odometry.POSE_QUANTUM): the IMU's smoother, rebuilt by
+        # replay on resume, predicts within ~1e-14 of the run never stopped, and the final
+        # solve would carry that to half a millimetre; rounded, both write the same bytes.
+        T_world_stamp = quantised(guess @ deskewed.motion.T_ref_at(-deskewed.ref_s)
+                                  @ _towards(correction, f))
         T_ref_stamp = inverse(odom.T_world_ref) @ T_world_stamp
         return dataclasses.replace(odom, T_world_scan=T_world_stamp, T_ref_stamp=T_ref_stamp)
 
