@@ -512,20 +512,46 @@ def _did_you_mean(loc: tuple) -> str:
     return f" (did you mean {' or '.join(elsewhere[:3])}?)" if elsewhere else ""
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, but a key given twice in one mapping is an error: the last one
+    would win silently (two `imu:` sections: the first one's settings lost)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                first = seen.setdefault(key, key_node.start_mark.line + 1)
+            except TypeError:  # an unhashable key: the base class says so
+                break
+            if first != key_node.start_mark.line + 1:
+                raise _DuplicateKey(f"line {key_node.start_mark.line + 1}: key {key!r} given "
+                                    f"twice (first on line {first})")
+        return super().construct_mapping(node, deep=deep)
+
+
 def _read_overlay(p: Path) -> dict:
     """The mapping of sections in a YAML file; an empty file (or only comments) is the defaults,
     said in a warning (a config that was meant to say something and says nothing)."""
     if not p.is_file():
         raise InputError(p, "config file does not exist")
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        data = yaml.load(p.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)  # noqa: S506
     except UnicodeDecodeError as exc:
         raise InputError(p, f"not a text file (byte {exc.start} is not UTF-8)") from None
     except OSError as exc:
         raise InputError(p, f"cannot read the config file ({exc.strerror or exc})") from None
+    except _DuplicateKey as exc:
+        raise InputError(p, str(exc)) from None
     except yaml.YAMLError as exc:
         first = " ".join(str(exc).splitlines()[0].split())
-        raise InputError(p, f"not valid YAML ({first})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}: " if mark is not None else ""
+        raise InputError(p, f"{where}not valid YAML ({first})") from None
     except (ValueError, RecursionError) as exc:  # e.g. a date that does not exist: 2023-02-30
         raise InputError(p, f"not valid YAML ({' '.join(str(exc).split())[:120]})") from None
     if data is None:

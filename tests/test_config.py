@@ -103,6 +103,10 @@ def test_an_empty_config_file_warns_and_gives_the_defaults(tmp_path, text, caplo
     ("1: {a: b}\n", ["1: Keys should be strings"]),
     ("data: {max_range_m: [1,\n", ["not valid YAML"]),
     ("when: 2023-02-30\n", ["not valid YAML (day is out of range for month)"]),
+    ("imu: {enabled: true}\nodometry: {}\nimu: {enabled: false}\n",
+     ["line 3: key 'imu' given twice (first on line 1)"]),
+    ("data:\n  max_range_m: 50\n  max_range_m: 60\n", ["line 3: key 'max_range_m' given twice"]),
+    ("data: {max_range_m: 5\nodometry: {}\n", ["line 2: not valid YAML"]),
 ])
 def test_a_bad_config_file_is_one_line_naming_it(tmp_path, text, needles):
     """Not a mapping, unknown keys, wrong types, inf, C-int overflow and bad YAML: each one
