@@ -321,5 +321,15 @@ class Localizer:
                 self.stats.relocalisations += 1
                 log.info("relocalised at frame %d on keyframe %d (fitness %.2f)",
                          deskewed.scan.index, cand.match, res.fitness)
-                return self.map.T_map_kf[cand.match] @ res.T_match_query, res.fitness
+                T = self.map.T_map_kf[cand.match] @ res.T_match_query
+                off = (np.inf if self.initial_pose is None
+                       else float(np.linalg.norm(T[:3, 3] - self.initial_pose[:3, 3])))
+                # A guess beyond ICP's coarse reach was not what the scan confirmed: said.
+                if np.isfinite(off) and (cand.query != -1
+                                         or off > c.localize.coarse_correspondence_m):
+                    log.warning("frame %d: localised %.1f m from --initial-pose (%s): the pose "
+                                "comes from the scan, not from it", deskewed.scan.index, off,
+                                "found by the global search" if cand.query != -1
+                                else "beyond localize.coarse_correspondence_m")
+                return T, res.fitness
         return None, best_fitness

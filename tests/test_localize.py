@@ -169,6 +169,13 @@ def test_initial_pose_starts_tracking_at_once(sim_map, tmp_path):
     assert [r["status"] for r in read_status(out)] == ["localized"] + ["tracking"] * 4
     t, r = errors(read_kitti_poses(out / "poses_kitti.txt"), ref[100:105])
     assert t.max() < 0.10 and r.max() < 0.5, (t, r)
+    # A guess 140 m off: not taken silently; the global search finds the pose and says so.
+    proc = lidar_slam("localize", sim_map.seq, "--map", sim_map.run, "--out", out, "--overwrite",
+                      "--start", 100, "--n-scans", 2, "--initial-pose", "100,100,0,0")
+    assert proc.returncode == 0, proc.stderr
+    said = [ln for ln in proc.stderr.splitlines() if "m from --initial-pose" in ln]
+    assert len(said) == 1 and "the pose comes from the scan" in said[0], proc.stderr
+    assert [r["status"] for r in read_status(out)] == ["localized", "tracking"]
 
 
 @pytest.mark.shared_data
