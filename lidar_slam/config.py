@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -471,13 +472,40 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     try:
         return SlamConfig.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        errors = exc.errors()
+        err = errors[0]
+        loc = _key_path(err["loc"])
+        where = ".".join(str(x) for x in loc) or "(top level)"
         shown = repr(err["input"])
         got = _did_you_mean(err["loc"]) if err["type"] == "extra_forbidden" else \
             f" (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
-        message = " ".join(f"{where}: {err['msg']}{got}".split())
+        # A value of a union (a number or "auto"): what each of its kinds wanted, in one line.
+        said = list(dict.fromkeys(_plain(e["msg"]) for e in errors if _key_path(e["loc"]) == loc))
+        message = " ".join(f"{where}: {'; or '.join(said)}{got}".split())
         raise ConfigError(f"{path or 'config'}: {message}") from None
+
+
+def _key_path(loc: tuple) -> tuple:
+    """The config keys of a pydantic error location, without the tags pydantic adds for the
+    kinds of a union ('constrained-float', 'bool', "literal['auto']")."""
+    out, model = [], SlamConfig
+    for part in loc:
+        is_model = isinstance(model, type) and issubclass(model, BaseModel)
+        if not is_model:
+            if isinstance(part, int):  # an item of a list
+                out.append(part)
+                continue
+            break  # a union's tag
+        out.append(part)  # a key of the section, or one it does not have
+        if part not in model.model_fields:
+            break
+        model = model.model_fields[part].annotation
+    return tuple(out)
+
+
+def _plain(msg: str) -> str:
+    """pydantic's 'a valid dictionary or instance of KeyframeConfig' as a user reads it."""
+    return re.sub(r"a valid dictionary or instance of \w+", "a mapping of settings", msg)
 
 
 def _section_keys(model: type[BaseModel], prefix: str = "") -> dict[str, list[str]]:

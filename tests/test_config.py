@@ -99,7 +99,10 @@ def test_an_empty_config_file_warns_and_gives_the_defaults(tmp_path, text, caplo
      ["odometry.max_points_per_voxel: Input should be a valid integer", "(got 'many')"]),
     ("odometry: {voxel_size_m: .inf}\n", ["odometry.voxel_size_m: Input should be a finite"]),
     ("odometry: {max_num_iterations: 10000000000}\n", ["odometry.max_num_iterations"]),
-    ("loop: 5\n", ["loop: Input should be a valid dictionary"]),
+    ("loop: 5\n", ["loop: Input should be a mapping of settings (got 5)"]),
+    # a union's kinds each say what they want, and pydantic's tags stay out of the key
+    ("keyframes: {distance_m: -1}\n",
+     ["keyframes.distance_m: Input should be greater than 0; or Input should be 'auto'"]),
     ("1: {a: b}\n", ["1: Keys should be strings"]),
     ("data: {max_range_m: [1,\n", ["not valid YAML"]),
     ("when: 2023-02-30\n", ["not valid YAML (day is out of range for month)"]),
