@@ -460,3 +460,27 @@ def test_part_of_a_kitti_sequence_beside_its_whole_poses_and_times(tmp_path, cap
     (seq / "velodyne" / "000007.bin").rename(seq / "velodyne" / "x.bin")
     with pytest.raises(InputError, match="times.txt: has 10 stamps for 3 scans, and the scans'"):
         KittiSource(seq)
+
+
+def test_pose_file_errors_name_the_line_without_numpys_advice(tmp_path):
+    from lidar_slam.eval.evaluate import trajectory_format
+    from lidar_slam.io.trajectory import read_kitti_poses
+
+    row = " ".join(map(str, np.eye(4)[:3].ravel()))
+    (tmp_path / "a.txt").write_text(f"{row}\n{row}\n1 2 3\n")
+    with pytest.raises(InputError, match=r"a.txt: not a KITTI pose file \(line 3 has 3 numbers, "
+                                         r"the lines before 12\)$"):
+        read_kitti_poses(tmp_path / "a.txt")
+    (tmp_path / "b.txt").write_text(f"{row}\n{row.replace('0.0', 'x', 1)}\n")
+    with pytest.raises(InputError, match=r"line 2, value 2: 'x' is not a number\)$"):
+        read_kitti_poses(tmp_path / "b.txt")
+    (tmp_path / "c.mcap").write_bytes(b"\x89MCAP0\r\n\xff\xfe")
+    with pytest.raises(InputError, match="c.mcap: not a text pose file"):
+        trajectory_format(tmp_path / "c.mcap")
+
+
+def test_a_folder_holding_a_recording_says_to_pass_the_file(tmp_path):
+    (tmp_path / "drive.mcap").write_bytes(b"\x89MCAP0\r\n")
+    with pytest.raises(InputError, match=r"no scans found .*; a recording is here: pass the file "
+                                         r"itself \(.*drive.mcap\)"):
+        open_source(tmp_path)

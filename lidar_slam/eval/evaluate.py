@@ -84,8 +84,11 @@ def trajectory_format(path: str | Path) -> str:
     try:
         with p.open() as fh:
             line = next((ln for ln in fh if ln.strip() and not ln.startswith("#")), "")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"unreadable pose file ({exc})") from exc
+    except UnicodeDecodeError:
+        raise InputError(p, "not a text pose file (KITTI or TUM lines); a recording or a "
+                            "binary file?") from None
+    except OSError as exc:
+        raise InputError(p, f"unreadable pose file ({exc.strerror or exc})") from exc
     n = len(line.replace(",", " ").split())
     if n == 12:
         return "kitti"

@@ -136,7 +136,10 @@ class FolderSource(StreamsBesideScans):
         if not files and (root / "scans").is_dir():
             files = _scan_files(root / "scans")
         if not files:
-            raise InputError(root, f"no scans found (looked for {', '.join(SCAN_SUFFIXES)} files)")
+            bags = sorted(p.name for p in root.iterdir() if p.suffix in (".bag", ".mcap", ".db3"))
+            hint = f"; a recording is here: pass the file itself ({root / bags[0]})" if bags else ""
+            raise InputError(root, f"no scans found (looked for {', '.join(SCAN_SUFFIXES)} "
+                                   f"files){hint}")
         self.files = files
         self.name = root.name
         stamps = _load_stamps(root / "times.txt", len(files))

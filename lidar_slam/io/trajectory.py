@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 from pathlib import Path
 
@@ -20,6 +21,19 @@ def _loadtxt(path: Path, **kwargs) -> np.ndarray:
         return np.loadtxt(path, **kwargs)
 
 
+def _numpy_reason(exc: ValueError) -> str:
+    """np.loadtxt's error without its advice to the programmer ("use `usecols` ..."), rows
+    counted from 1 as lines are."""
+    text = str(exc).split(";")[0].strip()
+    m = re.search(r"columns changed from (\d+) to (\d+) at row (\d+)", text)
+    if m:  # (this row is counted from 1)
+        return f"line {m.group(3)} has {m.group(2)} numbers, the lines before {m.group(1)}"
+    m = re.search(r"could not convert string (.*) to float64 at row (\d+), column (\d+)", text)
+    if m:  # (this row from 0)
+        return f"line {int(m.group(2)) + 1}, value {m.group(3)}: {m.group(1)} is not a number"
+    return text
+
+
 RIGID_TOL = 1e-3  # |R R^T - I| or |q| - 1: files write 6-9 digits; KITTI's are rigid to 1e-7
 
 
@@ -31,7 +45,7 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
     try:
         data = _loadtxt(p, ndmin=2)
     except ValueError as exc:
-        raise InputError(p, f"not a KITTI pose file ({exc})") from exc
+        raise InputError(p, f"not a KITTI pose file ({_numpy_reason(exc)})") from None
     if data.size == 0:
         raise InputError(p, "pose file is empty")
     if data.shape[1] != 12:
@@ -65,7 +79,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         data = _loadtxt(p, ndmin=2, comments="#")
     except ValueError as exc:
-        raise InputError(p, f"not a TUM pose file ({exc})") from exc
+        raise InputError(p, f"not a TUM pose file ({_numpy_reason(exc)})") from None
     if data.size == 0 or data.shape[1] != 8:
         raise InputError(p, "expected 8 numbers per line (stamp tx ty tz qx qy qz qw)")
     norm = np.linalg.norm(data[:, 4:8], axis=1)
