@@ -25,9 +25,32 @@ Auto = Literal["auto"]  # the value follows the data (lidar_slam.loop.adapt), fi
 log = logging.getLogger(__name__)
 
 
+def _takes_bool(annotation) -> bool:
+    """Whether a field's type has room for True / False (else pydantic reads true as 1)."""
+    import typing
+
+    if annotation is bool:
+        return True
+    if typing.get_origin(annotation) is Literal:
+        return any(isinstance(v, bool) for v in typing.get_args(annotation))
+    return any(_takes_bool(a) for a in typing.get_args(annotation))
+
+
 class _Section(BaseModel):
     # No NaN/inf: `voxel_size_m: .inf` passed every range check and ran.
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_for_a_number(cls, data):
+        """`distance_m: true` is a mistake, not 1.0 (pydantic's lax mode reads it so)."""
+        if isinstance(data, dict):
+            for key, value in data.items():
+                field = cls.model_fields.get(key) if isinstance(key, str) else None
+                if isinstance(value, bool) and field is not None \
+                        and not _takes_bool(field.annotation):
+                    raise ValueError(f"{key}: {str(value).lower()} is not a number")
+        return data
 
 
 class DataConfig(_Section):
@@ -482,6 +505,9 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         # A value of a union (a number or "auto"): what each of its kinds wanted, in one line.
         said = list(dict.fromkeys(_plain(e["msg"]) for e in errors if _key_path(e["loc"]) == loc))
         message = " ".join(f"{where}: {'; or '.join(said)}{got}".split())
+        if err["type"] == "value_error":  # a section's own check: it names its key
+            text = err["msg"].removeprefix("Value error, ")
+            message = text if not loc else f"{where}.{text}"
         raise ConfigError(f"{path or 'config'}: {message}") from None
 
 

@@ -100,6 +100,8 @@ def test_an_empty_config_file_warns_and_gives_the_defaults(tmp_path, text, caplo
     ("odometry: {voxel_size_m: .inf}\n", ["odometry.voxel_size_m: Input should be a finite"]),
     ("odometry: {max_num_iterations: 10000000000}\n", ["odometry.max_num_iterations"]),
     ("loop: 5\n", ["loop: Input should be a mapping of settings (got 5)"]),
+    ("keyframes: {distance_m: true}\n", ["keyframes.distance_m: true is not a number"]),
+    ("odometry: {max_num_threads: false}\n", ["odometry.max_num_threads: false is not a number"]),
     # a union's kinds each say what they want, and pydantic's tags stay out of the key
     ("keyframes: {distance_m: -1}\n",
      ["keyframes.distance_m: Input should be greater than 0; or Input should be 'auto'"]),
