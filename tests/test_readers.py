@@ -484,3 +484,10 @@ def test_a_folder_holding_a_recording_says_to_pass_the_file(tmp_path):
     with pytest.raises(InputError, match=r"no scans found .*; a recording is here: pass the file "
                                          r"itself \(.*drive.mcap\)"):
         open_source(tmp_path)
+
+
+def test_a_pickled_npy_says_so_in_one_line(tmp_path):
+    np.save(tmp_path / "p.npy", np.array([{"x": 1.0}], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError, match=r"p.npy: a .npy of Python objects \(pickled\), not of "
+                                         r"numbers; save the points as a numeric array$"):
+        read_cloud(tmp_path / "p.npy")

@@ -444,7 +444,12 @@ def read_npy(path: Path, stamp_ns: int | None = None) -> CloudData:
     x, y, z (and a time / intensity field)."""
     try:  # memory-mapped: a header that claims more data than the file has is refused here
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError, SyntaxError, TokenError) as exc:
+    except ValueError as exc:
+        if "allow_pickle" in str(exc) or "Python objects" in str(exc):  # not numbers: no pickle
+            raise InputError(path, "a .npy of Python objects (pickled), not of numbers; save "
+                                   "the points as a numeric array") from None
+        raise InputError(path, f"unreadable .npy ({str(exc).splitlines()[0][:120]})") from None
+    except (OSError, EOFError, SyntaxError, TokenError) as exc:
         # NumPy parses the header with ast / tokenize: a damaged one raises their errors
         raise InputError(path, f"unreadable .npy ({str(exc).splitlines()[0][:120]})") from None
     if arr.dtype.names:
