@@ -99,6 +99,10 @@ def test_eval_calls_a_reference_a_reference(tmp_path, ouster_loop, kitti16):
     assert "ground truth" in kitti.stdout
     named = lidar_slam("eval", poses, poses, "--gt-label", "BALM initial poses")
     assert "BALM initial poses" in named.stdout
+    from lidar_slam.eval.evaluate import truth_label
+
+    # the dataset folder given as GT (its README in it, not one folder up): the same label
+    assert truth_label(ouster_loop) == truth_label(poses) == "reference"
 
 
 def test_plots_take_the_label(tmp_path, monkeypatch):

@@ -361,8 +361,10 @@ _NOT_TRUTH = re.compile(r"not\s+(?:survey\s+)?ground[-\s]truth", re.IGNORECASE)
 
 def truth_label(gt_path: str | Path) -> str:
     """What to call the trajectory scored against, in plots and tables: "reference" where the
-    README beside it (or one folder up) says it is not ground truth, else "ground truth"."""
-    folder = Path(gt_path).resolve().parent
+    README beside it (or one folder up; for a dataset folder given as GT, in it) says it is not
+    ground truth, else "ground truth"."""
+    path = Path(gt_path).resolve()
+    folder = path if path.is_dir() else path.parent
     for where in (folder, folder.parent):
         for name in ("README.txt", "README.md", "README"):
             try:
