@@ -13,6 +13,7 @@ prints, per block of saved registrations: scan, kernel (m), local-map points, it
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -48,8 +49,6 @@ def record(seq: Path, config: Path | None, every: int) -> tuple[list, object]:
                 max_correspondance_distance=max_correspondance_distance, kernel=kernel)
 
     odometry.kp._Registration = Saving
-    import sys
-
     with tempfile.TemporaryDirectory() as out:
         argv = ["lidar-slam", "run", str(seq), "--out", out, "--overwrite", "--no-loops"]
         if config is not None:
@@ -105,9 +104,10 @@ def main() -> None:
                     help="also replay with this kernel (m) instead of the run's")
     args = ap.parse_args()
     saved, cfg = record(args.seq, args.config, args.every)
-    for label, kernel in (("run's kernel", None), (f"kernel {args.kernel} m", args.kernel)):
-        if label != "run's kernel" and kernel is None:
-            continue
+    kernels = [("run's kernel", None)]
+    if args.kernel is not None:
+        kernels.append((f"kernel {args.kernel} m", args.kernel))
+    for label, kernel in kernels:
         r = iterations(saved, cfg, kernel)
         print(f"{args.seq.name}, {label}: iterations (at most the ladder step that gives the "
               f"run's pose) per saved registration")

@@ -72,8 +72,7 @@ def _run_start(est: Path, start: int | None) -> int | None:
         made = summary.get("start") if isinstance(summary, dict) else None
     except (OSError, ValueError):
         return start
-    if not isinstance(made, int) or isinstance(made, bool) or made == (start or 0) or (
-            start is None and made == 0):
+    if not isinstance(made, int) or isinstance(made, bool) or made == (start or 0):
         return start
     if start is None:
         logging.getLogger("lidar_slam").info("%s: the run was made with --start %d (its "

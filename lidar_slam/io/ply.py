@@ -79,10 +79,11 @@ def copy_into_ply(path: str | Path, n: int, fields: Sequence[tuple[str, np.dtype
         shutil.copyfileobj(src, out, 1 << 24)
 
 
-_READ_TYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4",
-               "uint": "<u4", "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1",
-               "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
-               "float32": "<f4", "float64": "<f8"}
+# PLY scalar type names -> numpy type codes (byte order added by the reader)
+PLY_TYPE_CODES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4",
+                  "uint": "u4", "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1",
+                  "int16": "i2", "uint16": "u2", "int32": "i4", "uint32": "u4", "float32": "f4",
+                  "float64": "f8"}
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -106,9 +107,9 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         n = int(header[elements[0]].split()[2])
         end = elements[1] if len(elements) > 1 else len(header)
         props = [h.split() for h in header[elements[0] + 1:end] if h.startswith("property ")]
-        if any(len(p) != 3 or p[1] not in _READ_TYPES for p in props):
+        if any(len(p) != 3 or p[1] not in PLY_TYPE_CODES for p in props):
             raise InputError(path, "a vertex property is a list or of an unknown type")
-        dtype = np.dtype([(p[2], _READ_TYPES[p[1]]) for p in props])
+        dtype = np.dtype([(p[2], "<" + PLY_TYPE_CODES[p[1]]) for p in props])
         if not {"x", "y", "z"} <= set(dtype.names or ()):
             raise InputError(path, "the vertices have no x, y, z")
         rows = np.fromfile(fh, dtype=dtype, count=n)

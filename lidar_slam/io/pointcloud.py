@@ -11,6 +11,7 @@ from tokenize import TokenError
 import numpy as np
 
 from lidar_slam.errors import InputError
+from lidar_slam.io.ply import PLY_TYPE_CODES
 from lidar_slam.io.point_times import relative_seconds
 from lidar_slam.types import Scan
 
@@ -118,10 +119,6 @@ _PCD_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "V
              "POINTS", "DATA")
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",
               ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
-_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4",
-              "uint": "u4", "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1",
-              "int16": "i2", "uint16": "u2", "int32": "i4", "uint32": "u4", "float32": "f4",
-              "float64": "f8"}
 _MAX_POINTS = 2**31 - 1  # open3d counts points in a C int
 _LZF_MAX_RATIO = 100  # LZF expands at most ~88x (3 bytes back-reference 264)
 
@@ -328,10 +325,10 @@ def _check_ply(path: Path, head: bytes, size: int) -> int:
         elif words[0] == "element" and len(words) == 3:
             elements.append((words[1], _count(path, kind, words[2], "element count"), []))
         elif words[0] == "property" and elements and len(words) == 3 \
-                and words[1] in _PLY_TYPES:
-            elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+                and words[1] in PLY_TYPE_CODES:
+            elements[-1][2].append((words[2], PLY_TYPE_CODES[words[1]]))
         elif words[0] == "property" and elements and len(words) == 5 and words[1] == "list" \
-                and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
+                and words[2] in PLY_TYPE_CODES and words[3] in PLY_TYPE_CODES:
             elements[-1][2].append((words[4], None))
         elif words[0] == "end_header" and len(words) == 1:
             if fmt is None:

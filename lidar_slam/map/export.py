@@ -79,14 +79,14 @@ def map_points(saved_map: SavedMap, voxel_m: float | None = None) -> MapPoints:
 
 def format_of(path: Path, fmt: PointFormat | None) -> PointFormat:
     """The format asked for, else the one the file name says."""
+    named = path.suffix.lower().lstrip(".")
     if fmt is not None:
-        named = path.suffix.lower().lstrip(".")
         if named in {f.value for f in PointFormat} and named != fmt.value:
             raise LidarSlamError(f"{path}: --format {fmt.value}, but the name says {named}; "
                                  f"name it .{fmt.value}, or drop --format")
         return fmt
     try:
-        return PointFormat(path.suffix.lower().lstrip("."))
+        return PointFormat(named)
     except ValueError:
         raise LidarSlamError(f"{path}: cannot tell the format from the name; pass --format "
                              f"{'|'.join(f.value for f in PointFormat)}") from None

@@ -101,8 +101,8 @@ def localize_sequence(data: Path, map_dir: Path, out: Path, *, config: Path | No
                 raise RunFailed(error or f"{data}: no scan localised; nothing written",
                                 EXIT_INTERRUPTED if stop.received and not error
                                 else EXIT_BAD_INPUT)
-            located = any(f.status != Status.LOST for f in frames)
             lost = sum(f.status == Status.LOST for f in frames)
+            located = lost < len(frames)
             if lost and located:
                 log.warning("%d of %d frames lost (status.csv): their poses are the motion "
                             "model's prediction, or before the first localisation the initial "
