@@ -113,6 +113,14 @@ class OdometryConfig(_Section):
     refine_voxel_m: Positive | None = None
     refine_max_points: Count = 2000
     refine_max_correspondence_m: Positive = 1.0
+    # The same for a scan the IMU predicted: kiss-icp then starts within centimetres and the
+    # refinement only polishes, and matches further out are mostly to surfaces the target's
+    # keyframes never saw (a room seen anew through its door as the sensor passes), which
+    # pull the pose forward: at 1 m the indoor odometry came out 0.2-1.1 % too long. Lidar
+    # only, the refinement is what recovers kiss-icp's misses (a slow car stuck near standing
+    # still, a 16-beam walk) and keeps the 1 m basin (0.3 m there: indoor-handheld-vlp16 ATE
+    # 0.10 -> 0.44 m). Decided on the bank (docs/bank.md, Decisions, 2026-12-05).
+    refine_imu_correspondence_m: Positive = 0.3
     refine_max_correction_m: Positive = 0.5
     refine_max_correction_deg: Positive = 2.0
     # refine_evidence: each slow scan's refinement proves itself (2026-12-03): a share of the

@@ -223,7 +223,30 @@ def _refined(target: np.ndarray, scan: np.ndarray, T_kiss: np.ndarray) -> tuple[
     odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
                                                        "refine_evidence": True}}))
     odo.add_anchor(np.eye(4), target)
-    return odo, odo._refine(scan, T_kiss, evidence=True)
+    return odo, odo._refine(scan, T_kiss, evidence=True, predicted=False)
+
+
+def test_refinement_matches_closer_on_a_scan_the_imu_predicted(monkeypatch):
+    """A run with an IMU refines a scan the IMU predicted with matches up to
+    odometry.refine_imu_correspondence_m (kiss-icp started within centimetres: farther matches
+    are mostly to surfaces the keyframes never saw); a scan from the constant-velocity guess,
+    and every scan of a lidar-only run, with refine_max_correspondence_m."""
+    from lidar_slam.registration import PlaneTarget
+
+    seen = []
+    align = PlaneTarget.align
+    monkeypatch.setattr(PlaneTarget, "align", lambda self, src, T, corr: (
+        seen.append(corr), align(self, src, T, corr))[1])
+    rng = np.random.default_rng(0)
+    target, scan = _room(rng, 40000, 0.005), _room(rng, 6000, 0.01)
+    cfg = load_config(overrides={"odometry": {"max_num_threads": 1, "refine_evidence": False,
+                                              "refine_imu_correspondence_m": 0.25}})
+    for imu, predicted, expected in ((True, True, 0.25), (True, False, 1.0),
+                                     (False, True, 1.0), (False, False, 1.0)):
+        odo = Odometry(cfg, imu=imu)
+        odo.add_anchor(np.eye(4), target)
+        odo._refine(scan, np.eye(4), evidence=False, predicted=predicted)
+        assert seen[-1] == expected, (imu, predicted, seen)
 
 
 def test_slow_scan_refinement_refused_when_its_target_pulls_it_off():

@@ -240,10 +240,15 @@ class Odometry:
         self._anchors.append((T_world_kf, points_kf))
         self._target = None
 
-    def _refine(self, frame_down, T_world_points: np.ndarray, evidence: bool) -> np.ndarray:
+    def _refine(self, frame_down, T_world_points: np.ndarray, evidence: bool, predicted: bool
+                ) -> np.ndarray:
         """T_world_points refined against the last keyframes, or kept: by the correction gate,
-        or (odometry.refine_evidence) when the scan's held-out points do not prove it better."""
+        or (odometry.refine_evidence) when the scan's held-out points do not prove it better.
+        predicted: kiss-icp started from the IMU's prediction (odometry.refine_imu_
+        correspondence_m applies)."""
         o = self.cfg.odometry
+        corr = (o.refine_imu_correspondence_m if predicted and self.imu
+                else o.refine_max_correspondence_m)
         if self._target is None:
             points = np.concatenate([transform_points(T, np.asarray(p, np.float64))
                                      for T, p in self._anchors])
@@ -268,23 +273,21 @@ class Odometry:
         if held is not None:
             # Early: if even a Gauss-Newton step fitted on the held-out points themselves does
             # not improve them significantly, a fit on the other points will not: skip the ICP.
-            at_kiss = _plane_residuals(self._target, held, T_world_points,
-                                       o.refine_max_correspondence_m)
-            hope = plane_evidence(self._target, held, T_world_points, None,
-                                  o.refine_max_correspondence_m, at_kiss)
+            at_kiss = _plane_residuals(self._target, held, T_world_points, corr)
+            hope = plane_evidence(self._target, held, T_world_points, None, corr, at_kiss)
             if not hope.proven(o.refine_evidence_z):
                 self.last_evidence = hope
                 self.n_refine_skipped += 1
                 return T_world_points
-        T = self._target.align(source, T_world_points, o.refine_max_correspondence_m)
+        T = self._target.align(source, T_world_points, corr)
         correction = np.linalg.inv(T_world_points) @ T
         if (np.linalg.norm(correction[:3, 3]) > o.refine_max_correction_m
                 or rotation_angle_deg(correction) > o.refine_max_correction_deg):
             self.n_refine_refused += 1
             return T_world_points
         if held is not None:
-            self.last_evidence = plane_evidence(self._target, held, T_world_points, T,
-                                                o.refine_max_correspondence_m, at_kiss)
+            self.last_evidence = plane_evidence(self._target, held, T_world_points, T, corr,
+                                                at_kiss)
             if not self.last_evidence.proven(o.refine_evidence_z):
                 self.n_refine_unproven += 1
                 return T_world_points
@@ -326,7 +329,7 @@ class Odometry:
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
             evidence = mode is True or (mode == "with_imu" and self.imu and predicted)
-            new_pose = self._refine(frame_down, new_pose, evidence)
+            new_pose = self._refine(frame_down, new_pose, evidence, predicted)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
