@@ -99,8 +99,11 @@ def test_the_imu_in_the_final_solve_recovers_roll_and_pitch_of_a_tilted_start(dr
     assert out is not None and out.enu is None
     up_true = drive.T_enu_world[:3, :3].T @ [0.0, 0.0, 1.0]  # the world's up, in the world
     up = out.T_S_world[:3, :3].T @ [0.0, 0.0, 1.0]
-    # 5 deg of tilt to within 0.15 deg (an accelerometer bias of 5 mg alone tilts 0.3 deg)
-    assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 0.15
+    # 5 deg of tilt to within 0.3 deg, what an accelerometer bias of 5 mg alone tilts. Measured
+    # 0.26 deg since the odometry's variance factors may tighten (rotation 0.0625, the guard;
+    # the edges' true factor against this drive's truth is 0.047); 0.15 with the factor held
+    # at 1, the edges 4.6x looser in rotation than their errors.
+    assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 0.3
     assert out.summary["imu"]["factors"] == len(drive.kf_frames) - 1
     assert np.allclose(out.kf_poses[0], drive.T_world_kf[0], atol=1e-6)  # the first stays
 
