@@ -169,3 +169,27 @@ def test_a_run_stopped_by_a_signal_resumes_from_where_it_stopped(tmp_path, monke
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 30
     for name in files:
         assert (tmp_path / "run" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+def test_a_run_killed_while_its_pipeline_starts_is_one_resume_knows(tmp_path, monkeypatch):
+    """What the run is (checkpoint/run.json) is written before any other file of it: a run
+    killed while its pipeline starts (a batch's worker stopped by Ray: the keyframe folder made,
+    no checkpoint yet) is one --resume starts over, not a folder of someone's files it refuses
+    (tests/test_batch.py's signal test met that under load)."""
+    from lidar_slam import pipeline
+    from lidar_slam.run import run_sequence
+
+    init, out = pipeline.Pipeline.__init__, tmp_path / "run"
+
+    def killed_after_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        assert (out / "checkpoint" / "run.json").is_file()
+        raise KeyboardInterrupt  # as if killed here: nothing of the run's own handling runs
+
+    monkeypatch.setattr(pipeline.Pipeline, "__init__", killed_after_init)
+    with pytest.raises(KeyboardInterrupt):
+        run_sequence(SAMPLE, out, progress=False, n_scans=10)
+    assert any(out.iterdir())
+    monkeypatch.setattr(pipeline.Pipeline, "__init__", init)
+    resumed = run_sequence(SAMPLE, out, resume=True, progress=False, n_scans=10)
+    assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 0

@@ -289,6 +289,10 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
         return RunOutcome(summary, source.ground_truth, finished_before=True)
     painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
     resuming = _resuming(out, identity, overwrite, resume)
+    if not resuming:
+        # What the run is, before any other file of it: a run stopped at any instant after
+        # this (a batch's worker killed while its pipeline starts) is one --resume knows.
+        checkpoint.start_run(out, identity)
     visualizer = open_viewer(viz, rrd)
     t0 = time.perf_counter()
     stop = StopSignals()
@@ -299,8 +303,6 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
         if resuming:
             done = checkpoint.restore(out, pipe)
             log.warning("resuming %s at frame %d of %d", out, done, total)
-        else:
-            checkpoint.start_run(out, identity)
         label = f"{source.name}:{source.topic}" if source.topic else source.name
         end = _process_scans(pipe, read_ahead(source.scans(start + done, total - done)), out,
                              stop, make_progress(label, total, done, shown=progress))
