@@ -244,8 +244,8 @@ class Odometry:
                 ) -> np.ndarray:
         """T_world_points refined against the last keyframes, or kept: by the correction gate,
         or (odometry.refine_evidence) when the scan's held-out points do not prove it better.
-        predicted: kiss-icp started from the IMU's prediction (odometry.refine_imu_
-        correspondence_m applies)."""
+        predicted: kiss-icp started from the IMU's prediction (then the matches reach
+        odometry.refine_imu_correspondence_m, not refine_max_correspondence_m)."""
         o = self.cfg.odometry
         corr = (o.refine_imu_correspondence_m if predicted and self.imu
                 else o.refine_max_correspondence_m)

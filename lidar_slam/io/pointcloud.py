@@ -501,8 +501,8 @@ def make_scan(index: int, stamp_s: float, cloud: CloudData, source: str) -> Scan
         inten = inten[finite] if inten is not None else None
     if times is not None and not np.isfinite(times).all():
         times = None
-    if inten is not None and not np.isfinite(inten).all():
-        bad = ~np.isfinite(inten)
+    bad = None if inten is None else ~np.isfinite(inten)
+    if bad is not None and bad.any():
         log.warning("%s: %d NaN/inf intensities set to 0", source, int(bad.sum()))
         inten = np.where(bad, 0, inten).astype(inten.dtype)
     return Scan(index, float(stamp_s), points, times, inten, source)

@@ -204,21 +204,22 @@ class RunOutcome:
     finished_before: bool = False  # --resume of a run that had already finished: nothing done
 
 
-def _finished(out: Path, identity: dict) -> bool:
-    """Whether out holds this same run (input, range, config), finished at the input's end."""
+def _finished(out: Path, identity: dict) -> dict | None:
+    """The summary of the run in out when it is this same run (input, range, config), finished
+    at the input's end; else None."""
     from lidar_slam.run import checkpoint
 
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (OSError, ValueError):
-        return False
+        return None
     if not (isinstance(summary, dict) and summary.get("stopped") == "end of input"
             and (out / "poses_kitti.txt").is_file()
             and (out / "checkpoint" / "run.json").is_file()
             and not checkpoint.has_checkpoint(out)):
-        return False
+        return None
     checkpoint.check_same_run(out, identity)  # another input or config: refused, as ever
-    return True
+    return summary
 
 
 def _resuming(out: Path, identity: dict, overwrite: bool, resume: bool) -> bool:
@@ -282,10 +283,9 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)
     if meta is not None:
         identity["meta"] = str(Path(meta).resolve())
-    if resume and _finished(out, identity):
+    if resume and (summary := _finished(out, identity)) is not None:
         log.warning("--resume: the run in %s had already finished (its summary.json: end of "
                     "input); nothing to do (--overwrite runs it again)", out)
-        summary = json.loads((out / "summary.json").read_text())
         return RunOutcome(summary, source.ground_truth, finished_before=True)
     painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
     resuming = _resuming(out, identity, overwrite, resume)
