@@ -257,3 +257,27 @@ def test_the_grid_draws_jitter_the_values_by_a_fixed_small_amount():
         seen.add((round(dk, 9), tuple(np.round(Tk[:3, :3].ravel(), 9))))
         np.testing.assert_array_equal(grid.jittered(T, 0.05, k)[0], Tk)
     assert len(seen) == 6
+
+
+def test_the_grid_variants_are_off_the_truth_by_what_they_say():
+    """tools/imu_calibration_grid.py --variants: off06 moves only the offset (0.6 ms), rot01
+    only the rotation (0.1 deg), givenref keeps the truth with the auto run's prior, est is the
+    estimate unrefined; an unknown name is refused."""
+    from scipy.spatial.transform import Rotation
+
+    from tools import imu_calibration_grid as grid
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("x", 180, degrees=True).as_matrix()
+    T_est = np.eye(4)
+    T_off, off, sig = grid.variant_values("off06", T, 0.05, T_est, 0.0503, 0.4)
+    np.testing.assert_array_equal(T_off, T)
+    assert off == pytest.approx(0.0506) and sig is None
+    T_rot, off, sig = grid.variant_values("rot01", T, 0.05, T_est, 0.0503, 0.4)
+    turn = np.degrees(Rotation.from_matrix(T[:3, :3].T @ T_rot[:3, :3]).magnitude())
+    assert turn == pytest.approx(0.103, abs=1e-3) and off == 0.05 and sig is None
+    assert grid.variant_values("givenref", T, 0.05, T_est, 0.0503, 0.4)[2] == 0.4
+    T_e, off, sig = grid.variant_values("est", T, 0.05, T_est, 0.0503, 0.4)
+    assert T_e is T_est and off == 0.0503 and sig is None
+    with pytest.raises(ValueError, match="unknown variant"):
+        grid.variant_values("nope", T, 0.05, T_est, 0.0503, 0.4)

@@ -21,6 +21,12 @@ at the end.
     hand-held walk's ATE moves by tens of per cent under such a jitter (a run is one draw of a
     chaotic process: docs/benchmarks/2026-12-05d-imu-calibration.md). The row then carries the
     median, min and max ATE of each side and the ratio of the medians.
+
+    --variants V[,V...]  with --draws: more sides, drawn the same way, to tell what separates
+    the two (docs/benchmarks/2026-12-05n-imu-calibration-draws.md): est (the estimate without
+    the final solve's refinement), givenref (the true values with the auto run's refinement
+    prior), off06 (the true rotation, the offset 0.6 ms off), rot01 (the true offset, the
+    rotation 0.1 deg off); each row gains ate_V_median_m and ate_V_ratio (against given's).
 """
 
 from __future__ import annotations
@@ -46,6 +52,10 @@ DEFAULT_CASES = "0:none,0.2:none,-0.2:none,0.05:z90,-0.137:x180,1600:xz90,0:y90,
 # --draws: the jitter of the values each extra draw is given (s, deg): a fraction of the
 # estimates' errors (0.02-0.7 ms, 0.06-0.5 deg on the walks) and of their sigmas.
 JITTER_S, JITTER_DEG = 1e-4, 0.02
+# --variants: how far off the true values off06 and rot01 are (s; rad, about a fixed axis).
+OFF06_S = 6e-4
+ROT01_ROTVEC = (0.0, 0.0010, 0.0015)  # 0.103 deg
+VARIANTS = ("est", "givenref", "off06", "rot01")
 
 
 def mount_rotation(name: str) -> np.ndarray:
@@ -127,7 +137,24 @@ def draws(data: Path, root: Path, side: str, T: np.ndarray, offset_s: float,
             f"ate_{side}_min_m": round(min(got), 4), f"ate_{side}_max_m": round(max(got), 4)}
 
 
-def run_case(seq: Path, out: Path, case: str, n_draws: int = 1) -> dict:
+def variant_values(name: str, T_true: np.ndarray, offset_s: float, T_est: np.ndarray,
+                   est_offset_s: float, sigma_deg: float | None):
+    """(T_lidar_imu, offset, refinement prior sigma) of a --variants side."""
+    if name == "est":
+        return T_est, est_offset_s, None
+    if name == "givenref":
+        return T_true, offset_s, sigma_deg
+    if name == "off06":
+        return T_true, offset_s + OFF06_S, None
+    if name == "rot01":
+        T = T_true.copy()
+        T[:3, :3] = T_true[:3, :3] @ Rotation.from_rotvec(ROT01_ROTVEC).as_matrix()
+        return T, offset_s, None
+    raise ValueError(f"unknown variant {name!r} (one of {', '.join(VARIANTS)})")
+
+
+def run_case(seq: Path, out: Path, case: str, n_draws: int = 1,
+             variants: tuple[str, ...] = ()) -> dict:
     off_text, mount = case.split(":")
     offset_s = float(off_text)
     root = out / seq.name / case.replace(":", "_")
@@ -173,6 +200,15 @@ def run_case(seq: Path, out: Path, case: str, n_draws: int = 1) -> dict:
         sigma = refined["prior_sigma_deg"] if refined else None
         row.update(draws(data, root, "auto", T_est, est["time_offset_s"], sigma, n_draws,
                          row["ate_auto_m"]))
+        for name in variants:  # each side's first draw: its values unjittered
+            T, off, sig = variant_values(name, T_true, offset_s, T_est, est["time_offset_s"],
+                                         sigma)
+            first = run_and_score(data, root / f"{name}_draw0",
+                                  overlay(root / f"{name}_draw0.yaml", T, off, sig)).get("ate_m")
+            row.update(draws(data, root, name, T, off, sig, n_draws, first))
+            if row.get(f"ate_{name}_median_m") and row.get("ate_given_median_m"):
+                row[f"ate_{name}_ratio"] = round(row[f"ate_{name}_median_m"]
+                                                 / row["ate_given_median_m"], 3)
     if row.get("ate_auto_median_m") and row.get("ate_given_median_m"):
         row["ate_median_ratio"] = round(row["ate_auto_median_m"] / row["ate_given_median_m"], 3)
     return row
@@ -212,11 +248,17 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="Write the rows here too.")
     ap.add_argument("--draws", type=int, default=1,
                     help="Runs per side (the first as without; the rest given jittered values).")
+    ap.add_argument("--variants", default="",
+                    help=f"With --draws: more sides, comma-separated ({', '.join(VARIANTS)}).")
     args = ap.parse_args()
+    variants = tuple(v for v in args.variants.split(",") if v)
+    for v in variants:
+        if v not in VARIANTS:
+            ap.error(f"unknown variant {v!r} (one of {', '.join(VARIANTS)})")
     rows = []
     for seq in args.seqs:
         for case in args.cases.split(","):
-            row = run_case(seq, args.out, case, args.draws)
+            row = run_case(seq, args.out, case, args.draws, variants)
             print(json.dumps(row), flush=True)
             rows.append(row)
     print(markdown(rows))
