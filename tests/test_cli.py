@@ -263,6 +263,14 @@ def test_optimize_and_eval_bad_input(tmp_path):
     bad = tmp_path / "bad.g2o"
     bad.write_text("EDGE_SE2 0 1 nope\n")
     assert_one_line_error(lidar_slam("optimize", bad, "--out", tmp_path / "o.g2o"), "bad.g2o")
+    # the input is never the output, and an existing output is replaced only when asked
+    assert_one_line_error(lidar_slam("optimize", bad, "--out", bad, "--overwrite"),
+                          "--out is the input graph")
+    assert bad.read_text() == "EDGE_SE2 0 1 nope\n"
+    (tmp_path / "o.g2o").write_text("mine\n")
+    assert_one_line_error(lidar_slam("optimize", bad, "--out", tmp_path / "o.g2o"),
+                          "already exists", "--overwrite")
+    assert (tmp_path / "o.g2o").read_text() == "mine\n"
     est = tmp_path / "est.txt"
     est.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
     gt = tmp_path / "gt.txt"

@@ -146,3 +146,45 @@ def test_an_out_that_is_an_input_is_refused_before_anything_is_deleted(tmp_path)
     proc = lidar_slam("localize", data, "--map", run, "--out", run, "--overwrite")
     assert_one_line_error(proc, f"{run}: --out is the map; write the outputs to another folder")
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+
+
+def test_overwrite_that_cannot_delete_says_where_and_deletes_nothing(tmp_path, monkeypatch):
+    """--overwrite on a run whose keyframes folder is read-only: one line naming that folder,
+    and the old run left whole (it deleted config.yaml and checkpoint/ first, then failed on
+    a bare "map_poses.bin"). As root, who may delete anything, os.access is made to say no."""
+    from lidar_slam.errors import RunFailed
+    from lidar_slam.run.outdir import RUN_OUTPUTS, prepare_out_dir
+
+    out = tmp_path / "run"
+    for name in ("config.yaml", "summary.json", "checkpoint/state.bin", "keyframes/map_poses.bin"):
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text("x")
+    locked = out / "keyframes"
+    if os.geteuid() != 0:
+        locked.chmod(0o555)
+    else:
+        real = os.access
+        monkeypatch.setattr(os, "access", lambda p, mode: Path(p) != locked and real(p, mode))
+    try:
+        with pytest.raises(RunFailed, match=f"{locked}: --overwrite cannot delete in it"):
+            prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)
+    finally:
+        locked.chmod(0o755)
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint", "config.yaml", "keyframes",
+                                                     "summary.json"]
+    monkeypatch.undo()
+    prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)  # writable again: all of it goes
+    assert list(out.iterdir()) == []
+
+
+def test_no_output_file_is_made_executable(tmp_path):
+    """The keyframe store's files were created with os.open's default mode (0o777 less the
+    umask: -rwxr-xr-x); every file a run writes is rw, never x."""
+    import stat
+
+    out = tmp_path / "o"
+    assert lidar_slam("run", SAMPLE, "--out", out, *FEW).returncode == 0
+    made = [p for p in out.rglob("*") if p.is_file()]
+    assert any(p.parent.name == "keyframes" for p in made)
+    x = stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH
+    assert [p for p in made if p.stat().st_mode & x] == []

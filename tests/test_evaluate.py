@@ -154,6 +154,14 @@ def test_evaluate_bad_inputs_raise_input_error(tmp_path):
     (tmp_path / "loops.csv").write_text("a,b\n1,2\n")
     with pytest.raises(InputError, match="missing columns"):
         run_eval(tmp_path / "gt.txt", tmp_path / "gt.txt", loops_csv=tmp_path / "loops.csv")
+    # a cut row (a field short: csv hands None) and a row with a word for a frame: the line
+    head = "query_frame,match_frame,accepted\n"
+    for body, says in (("5,1,1\n1,2\n", "line 3: 2 columns, the header has 3"),
+                       ("5,1,1,9\n", "line 2: 4 columns"),
+                       ("5,1,1\nabc,2,1\n", "line 3: bad value")):
+        (tmp_path / "loops.csv").write_text(head + body)
+        with pytest.raises(InputError, match=says):
+            run_eval(tmp_path / "gt.txt", tmp_path / "gt.txt", loops_csv=tmp_path / "loops.csv")
     nan = gt.copy()
     nan[3, 0, 3] = np.nan
     write_kitti_poses(tmp_path / "nan.txt", nan)

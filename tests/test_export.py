@@ -130,6 +130,14 @@ def test_export_las_laz_pcd_ply(sim_map, tmp_path):
     # --out rule: an existing file is not replaced without --overwrite.
     proc = lidar_slam("export", sim_map.run, "--out", tmp_path / "map.pcd")
     assert proc.returncode == 2 and "--overwrite" in proc.stderr
+    # ... and never one of the run's own files, the map it reads least of all, even with it
+    for own in ("keyframes/points.bin", "poses_kitti.txt"):
+        before = (sim_map.run / own).read_bytes()
+        proc = lidar_slam("export", sim_map.run, "--out", sim_map.run / own, "--format", "ply",
+                          "--overwrite")
+        assert proc.returncode == 2 and "the run's own" in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1
+        assert (sim_map.run / own).read_bytes() == before
 
 
 @pytest.mark.shared_data

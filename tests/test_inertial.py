@@ -290,7 +290,11 @@ def test_run_reports_the_imu_and_gnss_it_read_in_summary_json(tmp_path):
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["imu"]["used"] and summary["imu"]["samples"] == n
     assert summary["imu"]["rate_hz"] == pytest.approx(200, rel=1e-3)
-    assert summary["gnss"]["used"] and summary["gnss"]["source"] == str(data / "gnss.csv")
+    assert summary["gnss"]["source"] == str(data / "gnss.csv")
+    # three scans span 3 fixes, fewer than the alignment needs: read, not used, and said why
+    # (the log's "GNSS not used" and summary.json agree)
+    assert not summary["gnss"]["used"] and not summary["gnss"]["geo_referenced"]
+    assert "usable fixes" in summary["gnss"]["reason"] and "GNSS not used" in proc.stderr
     proc = _run(data, "--out", tmp_path / "o2", "--n-scans", "3", "--no-loops", "--no-imu",
                 "--no-gnss", "--imu-topic", "/imu")
     assert proc.returncode == 0, proc.stderr

@@ -385,7 +385,8 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         tied, alignment, enu, unused = _tie_and_align(cfg, fixes, T_world_kf, tr, R_up_world)
         if alignment.T_enu_world is None:
             log.warning("GNSS not used: %s", alignment.why)
-            summary["gnss"] = {"geo_referenced": False, "reason": alignment.why}
+            # read, but not in the solve: summary.json's gnss.used says so, as imu.used does
+            summary["gnss"] = {"used": False, "geo_referenced": False, "reason": alignment.why}
             tied = None
     if tied is None and not links:  # nothing to solve: the pose graph's poses stay
         result = InertialResult(dict(T_world_kf), {}, None, None, summary=summary)

@@ -98,6 +98,9 @@ def export(
         raise fail(f"{out}: --out is a folder, not a file")
     if out.exists() and not overwrite:
         raise fail(f"{out}: already exists; pass --overwrite")
+    own = _run_file(run_dir, out)
+    if own is not None:
+        raise fail(f"{out}: --out is the run's own {own}; export elsewhere")
     if kind in (PointFormat.las, PointFormat.laz):
         require_laspy()  # before reading the map
     saved = open_map(run_dir)
@@ -109,3 +112,15 @@ def export(
     n = write_points(out, kind, points)
     typer.echo(f"wrote {n} points to {out}")
 
+
+def _run_file(run_dir: Path, out: Path) -> str | None:
+    """The name of the file or folder of the run (run.outdir.RUN_OUTPUTS: its poses, its
+    keyframes the map is read from, ...) that out is or lies in, else None: an export never
+    replaces what it reads or what the run wrote."""
+    from lidar_slam.run.outdir import RUN_OUTPUTS
+
+    try:
+        rel = out.resolve().relative_to(run_dir.resolve())
+    except ValueError:
+        return None
+    return rel.parts[0] if rel.parts and rel.parts[0] in RUN_OUTPUTS else None

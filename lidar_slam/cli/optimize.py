@@ -54,6 +54,7 @@ def optimize(
                                          "file's information (its optimum is SE-Sync's p*)."),
     max_iterations: int = typer.Option(100, "--max-iterations", min=1,
                                        help="Levenberg-Marquardt iterations at most."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out."),
 ) -> None:
     """Optimise a pose graph with GTSAM (prior on the first pose): LM, Huber or GNC."""
     from lidar_slam.backend.g2o_optimize import optimize_g2o
@@ -62,6 +63,12 @@ def optimize(
         raise fail(f"--huber-k must be positive, got {huber_k}")
     if not out.parent.is_dir():
         raise fail(f"{out}: cannot write it, {out.parent} is not a folder")
+    if out.exists() and graph.exists() and out.resolve() == graph.resolve():
+        raise fail(f"{out}: --out is the input graph; write the optimised one elsewhere")
+    if out.is_dir():
+        raise fail(f"{out}: --out is a folder, not a file")
+    if out.exists() and not overwrite:
+        raise fail(f"{out}: already exists; pass --overwrite")
     rep = optimize_g2o(graph, out, robust=robust.value, huber_k=huber_k,
                        max_iterations=max_iterations, init=init.value, certify=certify.value,
                        weights=weights.value)

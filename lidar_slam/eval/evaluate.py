@@ -196,14 +196,15 @@ def _truthy(value: str) -> bool:
 
 
 def read_loops_csv(path: str | Path) -> AcceptedLoops:
-    """Accepted rows of loops.csv (columns query_frame, match_frame, ..., accepted)."""
+    """Accepted rows of loops.csv (columns query_frame, match_frame, ..., accepted); a row
+    that is short, long or not numbers where numbers are due is refused with its line."""
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "loops file does not exist")
     try:
         with p.open(newline="") as f:
             reader = csv.DictReader(f)
-            rows = list(reader)
+            rows = [(reader.line_num, r) for r in reader]
             header = {h.strip() for h in reader.fieldnames or ()}
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(p, f"unreadable loops CSV ({exc})") from exc
@@ -211,16 +212,22 @@ def read_loops_csv(path: str | Path) -> AcceptedLoops:
     if not need <= header:
         raise InputError(p, f"missing columns {sorted(need - header)}")
     has_pose = set(LOOP_POSE_COLUMNS) <= header
-    try:
-        acc = [r for r in rows if _truthy(r["accepted"])]
-        pairs = np.array([[int(r["query_frame"]), int(r["match_frame"])] for r in acc],
-                         dtype=np.int64).reshape(-1, 2)
-        T = None
-        if has_pose:
-            T = np.array([from_xyz_quat(np.array([float(r[c]) for c in LOOP_POSE_COLUMNS]))
-                          for r in acc]).reshape(-1, 4, 4)
-    except (TypeError, ValueError) as exc:
-        raise InputError(p, f"bad value in an accepted row ({exc})") from exc
+    pairs, poses = [], []
+    for line, r in rows:
+        if None in r or None in r.values():  # DictReader's marks of a long / short row
+            n = sum(v is not None for k, v in r.items() if k is not None) + len(r.get(None, ()))
+            raise InputError(p, f"line {line}: {n} columns, the header has "
+                                f"{len(reader.fieldnames)}")
+        try:
+            if not _truthy(r["accepted"]):
+                continue
+            pairs.append([int(r["query_frame"]), int(r["match_frame"])])
+            if has_pose:
+                poses.append(from_xyz_quat(np.array([float(r[c]) for c in LOOP_POSE_COLUMNS])))
+        except (TypeError, ValueError) as exc:
+            raise InputError(p, f"line {line}: bad value in an accepted row ({exc})") from exc
+    pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    T = np.array(poses).reshape(-1, 4, 4) if has_pose else None
     return AcceptedLoops(pairs, T, len(rows))
 
 

@@ -151,7 +151,7 @@ class ScanContextIndex:
         self._grids = _Rows(size) if grid_path is None else None
         self._grid_fd = None
         if self._grid_path is not None:
-            self._grid_fd = os.open(self._grid_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC)
+            self._grid_fd = os.open(self._grid_path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666)
         self._last: tuple[int, Descriptor] | None = None
 
     def __len__(self) -> int:

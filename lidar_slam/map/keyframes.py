@@ -75,8 +75,8 @@ class KeyframeStore:
             self._n = len(table)
             self._table = np.resize(table, max(64, 2 * self._n))
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | (0 if keep else os.O_TRUNC)
-        self._table_fd = os.open(table_path, flags)
-        self._points_fd = os.open(self.root / "points.bin", flags)
+        self._table_fd = os.open(table_path, flags, 0o666)  # rw for all, less the umask
+        self._points_fd = os.open(self.root / "points.bin", flags, 0o666)
         self._read_fd = os.open(self.root / "points.bin", os.O_RDONLY)
         self.truncate(self._n)
 

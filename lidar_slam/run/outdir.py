@@ -34,12 +34,31 @@ def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: b
         flag = "--overwrite or --resume" if ours is RUN_OUTPUTS else "--overwrite"
         raise RunFailed(f"{out}: --out already holds files ({', '.join(held[:3])}"
                         f"{', ...' if len(held) > 3 else ''}); pass {flag}")
-    for name in held:
-        if name in ours:
-            path = out / name
+    doomed = [out / name for name in held if name in ours]
+    locked = _undeletable(out, doomed)
+    if locked is not None:  # found before anything is deleted: the old run stays whole
+        raise RunFailed(f"{locked}: --overwrite cannot delete in it (no write permission); "
+                        f"nothing was deleted")
+    for path in doomed:
+        try:
             shutil.rmtree(path) if path.is_dir() else path.unlink()
+        except OSError as exc:  # rmtree names the entry alone: say where it is
+            raise RunFailed(f"{path}: --overwrite could not delete it "
+                            f"({exc.strerror or exc})") from None
     out.mkdir(parents=True, exist_ok=True)  # fail before the run, not after it
     return False
+
+
+def _undeletable(out: Path, doomed: list[Path]) -> Path | None:
+    """The first folder whose entries --overwrite must delete but cannot (no write or search
+    permission: a read-only copy, another user's run), or None."""
+    import os
+
+    folders = [out] if doomed else []
+    for path in doomed:
+        if path.is_dir() and not path.is_symlink():
+            folders += [Path(root) for root, _, _ in os.walk(path)]
+    return next((f for f in folders if not os.access(f, os.W_OK | os.X_OK)), None)
 
 
 def refuse_input_as_out(out: Path, inputs: dict[str, Path | None]) -> None:
