@@ -208,6 +208,12 @@ def test_eval_against_an_input_without_ground_truth_is_one_line(tmp_path):
     est.write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n")
     proc = _cli("eval", str(est), str(seq))
     assert_one_line_error(proc, "no ground truth found", "mulran")
+    # a run folder given as a trajectory is named as one (it said "no ground truth found")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "poses_kitti.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    (run / "summary.json").write_text("{}\n")
+    assert_one_line_error(_cli("eval", str(run), str(est)), "a run folder", "poses_kitti.txt")
 
 
 def test_mulran_full_scan_gets_column_times(tmp_path):

@@ -145,6 +145,16 @@ def test_rosbag_without_pointcloud2_names_the_file_and_topics(rosbags_dir):
     assert str(path) in str(err.value) and "groundtruth" in str(err.value)
 
 
+def test_a_bag_cut_before_its_first_record_says_so(rosbags_dir, tmp_path):
+    """An .mcap cut to its first 1000 bytes (no channel left) is "no topics at all", not a
+    listing of nothing."""
+    path = tmp_path / "cut.mcap"
+    path.write_bytes((rosbags_dir / MCAP1).read_bytes()[:1000])
+    with pytest.raises(InputError, match="no topics at all") as err:
+        RosbagSource(path)
+    assert str(path) in str(err.value)
+
+
 def test_rosbag_with_two_cloud_topics_needs_a_topic(tmp_path):
     msg = _cloud_msg(_rec(_points()), store=ROS1)
     later = _cloud_msg(_rec(_points()), store=ROS1, stamp_ns=STAMP_NS + 100_000_000)

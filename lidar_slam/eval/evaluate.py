@@ -129,6 +129,8 @@ def input_ground_truth(path: str | Path) -> Trajectory:
     without the scans it does not reach; one InputError when it finds none."""
     from lidar_slam.io.sources import open_source
 
+    if (Path(path) / "poses_kitti.txt").is_file() and (Path(path) / "summary.json").is_file():
+        raise InputError(path, "a run folder, not an input: give its poses_kitti.txt")
     source = open_source(path)
     if source.ground_truth is None:
         raise InputError(path, f"no ground truth found for this {source.kind} input (see the "

@@ -23,6 +23,9 @@ def pick_cloud_topic(path: Path, topics: dict[str, tuple[str, int]], topic: str 
         return topic
     if not clouds:
         listing = ", ".join(f"{t} [{typ}]" for t, (typ, _) in sorted(topics.items()))
+        if not listing:  # a bag whose index names nothing: cut short, or empty
+            raise InputError(path, "no topics at all (an empty bag, or one cut short before "
+                                   "its index)")
         raise InputError(path, f"no sensor_msgs/PointCloud2 topic (topics: {listing})")
     if len(clouds) > 1:
         raise InputError(path, f"{len(clouds)} sensor_msgs/PointCloud2 topics "
