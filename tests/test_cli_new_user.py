@@ -188,3 +188,19 @@ def test_no_output_file_is_made_executable(tmp_path):
     assert any(p.parent.name == "keyframes" for p in made)
     x = stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH
     assert [p for p in made if p.stat().st_mode & x] == []
+
+
+def test_overwrite_deletes_a_linked_output_folder_as_a_link(tmp_path):
+    """A run whose keyframes/ is a link to a folder elsewhere: --overwrite removes the link and
+    leaves what it points at (rmtree refused the link after the rest was gone)."""
+    from lidar_slam.run.outdir import RUN_OUTPUTS, prepare_out_dir
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "points.bin").write_text("keep")
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.yaml").write_text("x")
+    (out / "keyframes").symlink_to(elsewhere)
+    prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)
+    assert list(out.iterdir()) == [] and (elsewhere / "points.bin").read_text() == "keep"

@@ -162,6 +162,14 @@ def test_evaluate_bad_inputs_raise_input_error(tmp_path):
         (tmp_path / "loops.csv").write_text(head + body)
         with pytest.raises(InputError, match=says):
             run_eval(tmp_path / "gt.txt", tmp_path / "gt.txt", loops_csv=tmp_path / "loops.csv")
+    # spaces after the header's commas are read as the names; a zero quaternion is refused
+    pose = "query_frame, match_frame, accepted, x, y, z, qx, qy, qz, qw\n"
+    (tmp_path / "loops.csv").write_text(pose + "5, 1, 1, 0, 0, 0, 0, 0, 0, 1\n")
+    m = run_eval(tmp_path / "gt.txt", tmp_path / "gt.txt", loops_csv=tmp_path / "loops.csv")
+    assert m["loops_accepted"] == 1
+    (tmp_path / "loops.csv").write_text(pose + "5, 1, 1, 0, 0, 0, 0, 0, 0, 0\n")
+    with pytest.raises(InputError, match="line 2: .*zero quaternion"):
+        run_eval(tmp_path / "gt.txt", tmp_path / "gt.txt", loops_csv=tmp_path / "loops.csv")
     nan = gt.copy()
     nan[3, 0, 3] = np.nan
     write_kitti_poses(tmp_path / "nan.txt", nan)

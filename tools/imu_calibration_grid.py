@@ -252,6 +252,8 @@ def main() -> None:
                     help=f"With --draws: more sides, comma-separated ({', '.join(VARIANTS)}).")
     args = ap.parse_args()
     variants = tuple(v for v in args.variants.split(",") if v)
+    if variants and args.draws < 2:
+        ap.error("--variants needs --draws 2 or more (its sides are drawn as given's are)")
     for v in variants:
         if v not in VARIANTS:
             ap.error(f"unknown variant {v!r} (one of {', '.join(VARIANTS)})")

@@ -96,11 +96,11 @@ def export(
     kind = format_of(out, None if fmt is None else PointFormat(fmt.value))
     if out.is_dir():
         raise fail(f"{out}: --out is a folder, not a file")
-    if out.exists() and not overwrite:
-        raise fail(f"{out}: already exists; pass --overwrite")
     own = _run_file(run_dir, out)
     if own is not None:
         raise fail(f"{out}: --out is the run's own {own}; export elsewhere")
+    if out.exists() and not overwrite:
+        raise fail(f"{out}: already exists; pass --overwrite")
     if kind in (PointFormat.las, PointFormat.laz):
         require_laspy()  # before reading the map
     saved = open_map(run_dir)

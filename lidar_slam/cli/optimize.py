@@ -63,7 +63,9 @@ def optimize(
         raise fail(f"--huber-k must be positive, got {huber_k}")
     if not out.parent.is_dir():
         raise fail(f"{out}: cannot write it, {out.parent} is not a folder")
-    if out.exists() and graph.exists() and out.resolve() == graph.resolve():
+    if not graph.is_file():
+        raise fail(f"{graph}: {'a folder, not a g2o file' if graph.is_dir() else 'does not exist'}")
+    if out.exists() and out.resolve() == graph.resolve():
         raise fail(f"{out}: --out is the input graph; write the optimised one elsewhere")
     if out.is_dir():
         raise fail(f"{out}: --out is a folder, not a file")

@@ -206,8 +206,9 @@ def read_loops_csv(path: str | Path) -> AcceptedLoops:
     try:
         with p.open(newline="") as f:
             reader = csv.DictReader(f)
+            reader.fieldnames = [h.strip() for h in reader.fieldnames or ()]  # "a, b" as "a,b"
             rows = [(reader.line_num, r) for r in reader]
-            header = {h.strip() for h in reader.fieldnames or ()}
+            header = set(reader.fieldnames)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(p, f"unreadable loops CSV ({exc})") from exc
     need = {"query_frame", "match_frame", "accepted"}
@@ -225,7 +226,10 @@ def read_loops_csv(path: str | Path) -> AcceptedLoops:
                 continue
             pairs.append([int(r["query_frame"]), int(r["match_frame"])])
             if has_pose:
-                poses.append(from_xyz_quat(np.array([float(r[c]) for c in LOOP_POSE_COLUMNS])))
+                v = np.array([float(r[c]) for c in LOOP_POSE_COLUMNS])
+                if not np.isfinite(v).all() or not np.linalg.norm(v[3:]) > 0:
+                    raise ValueError("a pose that is not finite, or a zero quaternion")
+                poses.append(from_xyz_quat(v))
         except (TypeError, ValueError) as exc:
             raise InputError(p, f"line {line}: bad value in an accepted row ({exc})") from exc
     pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)

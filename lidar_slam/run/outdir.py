@@ -40,8 +40,8 @@ def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: b
         raise RunFailed(f"{locked}: --overwrite cannot delete in it (no write permission); "
                         f"nothing was deleted")
     for path in doomed:
-        try:
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        try:  # a link is deleted, never followed
+            path.unlink() if path.is_symlink() or not path.is_dir() else shutil.rmtree(path)
         except OSError as exc:  # rmtree names the entry alone: say where it is
             raise RunFailed(f"{path}: --overwrite could not delete it "
                             f"({exc.strerror or exc})") from None
@@ -50,15 +50,20 @@ def prepare_out_dir(out: Path, ours: tuple[str, ...], overwrite: bool, resume: b
 
 
 def _undeletable(out: Path, doomed: list[Path]) -> Path | None:
-    """The first folder whose entries --overwrite must delete but cannot (no write or search
-    permission: a read-only copy, another user's run), or None."""
+    """The first folder whose entries --overwrite must delete but cannot (no read, write or
+    search permission: a read-only copy, another user's run), or None. Links are deleted, not
+    followed."""
     import os
 
     folders = [out] if doomed else []
+
+    def unlisted(err: OSError) -> None:  # a folder os.walk cannot list: rmtree cannot either
+        folders.append(Path(err.filename))
+
     for path in doomed:
         if path.is_dir() and not path.is_symlink():
-            folders += [Path(root) for root, _, _ in os.walk(path)]
-    return next((f for f in folders if not os.access(f, os.W_OK | os.X_OK)), None)
+            folders += [Path(root) for root, _, _ in os.walk(path, onerror=unlisted)]
+    return next((f for f in folders if not os.access(f, os.R_OK | os.W_OK | os.X_OK)), None)
 
 
 def refuse_input_as_out(out: Path, inputs: dict[str, Path | None]) -> None:
