@@ -257,6 +257,16 @@ def test_simulate_then_run_round_trip(tmp_path, kitti_gt):
     assert_one_line_error(lidar_slam(*again), "already holds files", "--overwrite")
     assert lidar_slam(*again, "--overwrite").returncode == 0
     assert len(list((out / "velodyne").glob("*.bin"))) == 3  # no stale scans left
+    # ... and never over its own inputs: poses and calib copied into --out survive
+    q = tmp_path / "q"
+    q.mkdir()
+    for name, src in (("poses.txt", kitti_gt / "poses" / "07.txt"),
+                      ("calib.txt", kitti_gt / "calib" / "07.txt")):
+        (q / name).write_bytes(src.read_bytes())
+    assert_one_line_error(lidar_slam("simulate", q / "poses.txt", "--calib", q / "calib.txt",
+                                     "--out", q, "--n-scans", "3", "--overwrite"),
+                          "an input of simulate lies in --out")
+    assert (q / "poses.txt").is_file() and (q / "calib.txt").is_file()
 
 
 def test_optimize_and_eval_bad_input(tmp_path):

@@ -166,3 +166,20 @@ def test_keyframe_position_nees_on_a_simulated_kitti_slice_stays_where_it_was_me
     """Was 0.18 with the fixed sigmas (2-4x the HDL-64 odometry's per-keyframe error); each
     edge's own information: 2.63 on frames 0-179."""
     _check_nees(_nees(sim_map.run, sim_map.seq), 2.63)
+
+
+def test_covariances_gtsam_cannot_compute_leave_the_poses_written(tmp_path, monkeypatch, caplog):
+    """gtsam's Marginals refusing a degenerate graph ("Indeterminate linear system") ended a run
+    in "internal error" with no poses; now one warning, the poses, no covariances.csv."""
+    from lidar_slam.backend import gtsam_graph
+    from lidar_slam.run import run_sequence
+
+    def indeterminate(*args, **kwargs):
+        raise RuntimeError("Indeterminate linear system\nmore")
+
+    monkeypatch.setattr(gtsam_graph, "marginal_covariances", indeterminate)
+    out = run_sequence(SAMPLE, tmp_path / "run", progress=False, n_scans=20)
+    assert out.failure is None
+    assert len(read_kitti_poses(tmp_path / "run" / "poses_kitti.txt")) == 20
+    assert not (tmp_path / "run" / "covariances.csv").exists()
+    assert "covariances not computed (gtsam: Indeterminate linear system)" in caplog.text

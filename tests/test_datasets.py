@@ -263,3 +263,16 @@ def test_mulran_in_kiss_icps_flat_layout(tmp_path):
     shutil.copy(DATA / "mulran/KAIST01/global_pose.csv", seq / "global_pose.csv")
     source = open_source(seq)
     assert source.kind == "mulran" and np.isfinite(source.ground_truth).all()
+
+
+def test_a_scan_named_otherwise_than_its_layout_is_one_line_naming_it(tmp_path):
+    """A Newer College cloud named cloud_0.pcd said "a scan file name is not a stamp (not
+    enough values to unpack ...)" about its folder; now the file and the expected name."""
+    seq = tmp_path / "ncd"
+    shutil.copytree(DATA / FIXTURES["newer_college"][0], seq)
+    clouds = seq / "raw_format" / "ouster_scan"
+    first = sorted(clouds.glob("*.pcd"))[0]
+    bad = clouds / "cloud_0.pcd"
+    first.rename(bad)
+    assert_one_line_error(_cli("run", str(seq), "--out", str(tmp_path / "o")), str(bad),
+                          "Newer College cloud_<sec>_<nsec>.pcd")

@@ -81,6 +81,20 @@ def test_non_finite_imu_samples_are_dropped_with_a_counted_warning(tmp_path, cap
     assert "imu.csv" in caplog.text
 
 
+def test_imu_samples_no_imu_could_read_are_dropped_as_invalid(tmp_path, caplog):
+    """A spike of 1e6 m/s^2 (or rad/s) on one row took the odometry 41 km away and the final
+    solve to "internal error"; beyond 1e4 in any unit it is a glitch, dropped and counted."""
+    rows = _imu_rows().tolist()
+    rows[40][4] = 1e6
+    rows[60][2] = -1e30
+    imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
+    assert len(imu) == 98 and imu.dropped["invalid"] == 2
+    assert "dropped 2 of 100 IMU samples (2 non-finite or invalid" in caplog.text
+    rows = _imu_rows().tolist()
+    rows[40][4] = 156.0  # 16 g: a real accelerometer's range, kept
+    assert len(read_imu_csv(_write(tmp_path / "imu2.csv", IMU_HEADER, rows))) == 100
+
+
 def test_duplicated_imu_stamps_are_dropped_and_counted(tmp_path, caplog):
     rows = _imu_rows()
     rows = np.insert(rows, 50, rows[50], axis=0)  # a repeated sample

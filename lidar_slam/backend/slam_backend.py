@@ -204,7 +204,14 @@ class Backend:
 
     def _covariances(self) -> None:
         t0 = time.perf_counter()
-        self.covariances = self.graph.covariances(self.cfg.robust, self.cfg.huber_k)
+        try:
+            self.covariances = self.graph.covariances(self.cfg.robust, self.cfg.huber_k)
+        except RuntimeError as exc:  # gtsam: "Indeterminate linear system" on a degenerate graph
+            log.warning("covariances not computed (gtsam: %s): the poses are written without "
+                        "them (no covariances.csv)", str(exc).strip().splitlines()[0])
+            self.covariances = {}
+            self.seconds["covariances"] = time.perf_counter() - t0
+            return
         self.variance_factor = self._variance_factor()
         if self.variance_factor > 1.0:
             self.covariances = {k: c * self.variance_factor for k, c in self.covariances.items()}

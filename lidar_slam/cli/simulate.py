@@ -160,6 +160,8 @@ def simulate(
     if not poses:
         raise fail("simulate needs POSES (KITTI pose files) or --motion handheld")
     sensor = sensor or Sensor.hdl64
+    if overwrite:  # --overwrite deletes the sequence files it writes: poses.txt, calib.txt, ...
+        _refuse_inputs_in_out(out, [*poses, calib, times])
     if len(poses) == 1:
         typer.echo(simulate_one(SimulateJob(str(poses[0]), str(out), _str(calib), _str(times),
                                             sensor.value, start, n_scans, seed, overwrite,
@@ -193,6 +195,17 @@ def _handheld(out: Path, motion: Motion, world: WorldKind, duration_s: float, se
     typer.echo(simulate_handheld_one(HandheldJob(str(out), world.value, duration_s, sensor,
                                                  seed, overwrite, *rates, **timing,
                                                  motion=motion.value)))
+
+
+def _refuse_inputs_in_out(out: Path, inputs: list[Path | None]) -> None:
+    """An input (POSES, --calib, --times) inside --out would be deleted by --overwrite before
+    it is read (the sequence's own poses.txt / calib.txt / times.txt are among what it
+    replaces): refused in one line, nothing deleted."""
+    o = out.resolve()
+    for path in inputs:
+        if path is not None and (o == path.resolve() or o in path.resolve().parents):
+            raise fail(f"{path}: an input of simulate lies in --out {out}, which --overwrite "
+                       f"would delete first; write the sequence to another folder")
 
 
 def _numbers(text: str | None, n: int, flag: str) -> tuple[float, ...] | None:

@@ -31,6 +31,11 @@ GAP_PERIODS = 5.0
 # The median norm of the specific force is ~9.81 m/s^2 on any recording that is not in free
 # fall; outside this range the file is in g (~1) or has gravity removed (~0): refused.
 MIN_MEDIAN_SPECIFIC_FORCE, MAX_MEDIAN_SPECIFIC_FORCE = 5.0, 20.0
+# A sample beyond these is no reading of any IMU, in any of the units told from the data (a gyro
+# in deg/s or rad/s, a specific force in m/s^2 or g): a glitch, dropped as a non-finite one is
+# (one spike of 1e6 m/s^2 took the odometry 41 km away and the final solve to an internal error).
+MAX_ABS_RATE = 1e4
+MAX_ABS_SPECIFIC_FORCE = 1e4
 
 
 @dataclass(frozen=True)
@@ -162,7 +167,11 @@ def read_imu_csv(path: str | Path) -> ImuSamples:
 def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None
                   ) -> ImuSamples:
     """ImuSamples from (N, 7) rows in the imu.csv column order, cleaned as read_imu_csv."""
-    kept, counts = _clean(Path(source), rows, np.isfinite(rows).all(axis=1), "IMU samples")
+    with np.errstate(invalid="ignore"):
+        plausible = ((np.abs(rows[:, 1:4]) <= MAX_ABS_RATE).all(axis=1)
+                     & (np.abs(rows[:, 4:7]) <= MAX_ABS_SPECIFIC_FORCE).all(axis=1))
+    kept, counts = _clean(Path(source), rows, np.isfinite(rows).all(axis=1) & plausible,
+                          "IMU samples")
     dt = np.diff(kept[:, 0])
     gaps = int((dt > GAP_PERIODS * np.median(dt)).sum())
     if gaps:

@@ -37,10 +37,12 @@ def stamped_files(folder: Path, suffix: str, stamp_s: Callable[[str], float],
         if folder.is_dir() else []
     if not files:
         raise InputError(folder, f"no {suffix} scans found ({what})")
-    try:
-        stamps = np.array([stamp_s(p.stem) for p in files], dtype=np.float64)
-    except ValueError as exc:
-        raise InputError(folder, f"a scan file name is not a stamp ({exc})") from None
+    stamps = np.empty(len(files), dtype=np.float64)
+    for k, p in enumerate(files):
+        try:
+            stamps[k] = stamp_s(p.stem)
+        except ValueError:
+            raise InputError(p, f"the scan file name is not a stamp (expected {what})") from None
     order = np.argsort(stamps, kind="stable")
     stamps = stamps[order]
     if len(stamps) > 1 and not (np.diff(stamps) > 0).all():
