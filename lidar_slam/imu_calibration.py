@@ -95,6 +95,10 @@ LAG_FREE_CORRELATION = 0.999
 # errors 0.23-0.37 deg for sigmas 0.15-0.39), and a prior too tight keeps the error
 # (docs/benchmarks/2026-12-04b-imu-calibration.md).
 REFINE_SIGMA_FACTOR = 2.0
+# A first estimate whose gyro scale (lidar turn over gyro turn) is within this of 1/57.3 reads a
+# gyro in deg/s: it is converted and the calibration made again (issue 30, item 6: it was
+# dropped as "mounting cannot be found", the aided passes having turned it 57x).
+DEG_SCALE_TOLERANCE = 0.15
 
 
 @dataclass(frozen=True)
@@ -548,7 +552,20 @@ def resolve(cfg, source, inertial, offset_auto: bool, mount_auto: bool, start: i
         update={"T_lidar_imu": [0.0] * 6, "time_offset_s": 0.0})})
     est, win = calibrate(source, imu, window_cfg, given_offset, need_rotation=mount_auto,
                          start=start, count=count)
-    calibration = {"time_offset_s_from": "data" if offset_auto else "config",
+    gyro_unit = None
+    if est is not None and abs(est.gyro_scale * np.degrees(1.0) - 1.0) <= DEG_SCALE_TOLERANCE:
+        # the lidar turned 1/57.3 of what the gyro read: deg/s (frontend.imu_check converts
+        # so too, but only once the IMU is in use; the aided passes here need rad/s first)
+        log.warning("%s: the IMU's gyro turned %.1fx as far as the lidar over the calibration "
+                    "window: read as deg/s and converted to rad/s", imu.source,
+                    1.0 / est.gyro_scale)
+        imu = dataclasses.replace(imu, gyro_radps=np.radians(imu.gyro_radps))
+        inertial = dataclasses.replace(inertial, imu=imu)
+        gyro_unit = "deg/s, converted to rad/s"
+        est, win = calibrate(source, imu, window_cfg, given_offset, need_rotation=mount_auto,
+                             start=start, count=count)
+    calibration = {**({} if gyro_unit is None else {"gyro_unit": gyro_unit}),
+                   "time_offset_s_from": "data" if offset_auto else "config",
                    "R_lidar_imu_from": "data" if mount_auto else "config or input",
                    "window_scans": win.scans, "window_passes": win.passes,
                    "window_seconds": round(win.seconds, 2),

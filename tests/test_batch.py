@@ -213,6 +213,15 @@ def launch_batch(args: list, out: Path, env: dict) -> subprocess.Popen:
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
+def _finished(summary: Path) -> bool:
+    """A run that ended at its input's end: a run stopped by the Ctrl-C writes its summary.json
+    too, saying so (it made this test fail whenever the signal caught a second job mid-run)."""
+    if not summary.is_file():
+        return False
+    doc = json.loads(summary.read_text())
+    return not (doc.get("interrupted") or doc.get("stopped_by_error"))
+
+
 @pytest.fixture(scope="module")
 def on_cluster(inputs, ray_cluster, tmp_path_factory) -> dict:
     """The same batch on the separate cluster (--address auto): Ctrl-C (SIGINT to the
@@ -236,7 +245,7 @@ def on_cluster(inputs, ray_cluster, tmp_path_factory) -> dict:
     first = {"returncode": proc.returncode, "stdout": stdout, "stderr": stderr,
              "table": read_table(out),
              "mtimes": {n: (out / n / "summary.json").stat().st_mtime_ns for n in OK_NAMES
-                        if (out / n / "summary.json").is_file()}}
+                        if _finished(out / n / "summary.json")}}
     again = lidar_slam("batch", *args, "--out", out, env=pinned(ray_cluster))
     return {"out": out, "first": first, "again": again, "table": read_table(out)}
 
@@ -250,7 +259,9 @@ def test_sigint_stops_the_batch_and_keeps_finished_runs(on_cluster):
     assert last.startswith("lidar-slam: error: interrupted;") and "re-run" in last, last
     rows = {r["sequence"]: r for r in first["table"]}
     finished = sorted(n for n in OK_NAMES if rows[n]["status"] == "ok")
-    assert finished and finished == sorted(first["mtimes"]), rows
+    # every run the table calls ok finished; one may finish as the signal lands, its result
+    # not back yet (its row "interrupted"): the rerun skips it all the same (next test)
+    assert finished and set(finished) <= set(first["mtimes"]), rows
     assert any("interrupted" in r["message"] for r in rows.values()), rows
 
 

@@ -212,6 +212,29 @@ def test_an_imu_the_config_does_not_describe_is_calibrated_and_used(walk, tmp_pa
     assert ratio < 1.25, (auto["ate_rmse_m"], given["ate_rmse_m"])
 
 
+def test_a_gyro_in_deg_per_s_with_nothing_given_is_converted_and_calibrated(walk, tmp_path,
+                                                                           caplog):
+    """Issue 30, item 6: a gyro in deg/s and no config was dropped ("mounting cannot be found":
+    the gyro-aided passes had turned 57x); the first estimate's scale tells the unit, the gyro
+    is converted in one line and the calibration made again, as good as in rad/s."""
+    from tools.bad_imu import HEADER, link_sequence
+
+    seq, T_true = walk
+    deg = tmp_path / "deg"
+    link_sequence(seq, deg, skip=("imu.csv",))
+    rows = np.loadtxt(seq / "imu.csv", delimiter=",", skiprows=1)
+    rows[:, 1:4] = np.degrees(rows[:, 1:4])
+    np.savetxt(deg / "imu.csv", rows, delimiter=",", header=HEADER, comments="",
+               fmt=["%.9f"] + ["%.10g"] * 6)
+    imu = run(deg, tmp_path / "out")["imu"]
+    assert imu["used"], imu
+    assert imu["calibration"]["gyro_unit"] == "deg/s, converted to rad/s"
+    est = imu["calibration"]["estimate"]
+    assert abs(est["gyro_scale"] - 1.0) < 0.05 and abs(est["time_offset_s"] - 0.1) < 0.002
+    assert angle_deg(T_true[:3, :3].T @ np.array(est["R_lidar_imu"])) < 1.0, est
+    assert "read as deg/s and converted to rad/s" in caplog.text
+
+
 def test_too_short_a_run_to_calibrate_goes_lidar_only_saying_why(walk, tmp_path, caplog):
     import logging
 
