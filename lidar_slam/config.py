@@ -411,6 +411,9 @@ class ImuConfig(_Section):
         if len(self.T_lidar_imu) == 6:
             if not np.all(np.isfinite(self.T_lidar_imu)):
                 raise ValueError("T_lidar_imu must be finite (x y z m, roll pitch yaw deg)")
+            if np.abs(self.T_lidar_imu[3:]).max() > 360.0:  # 1e300 deg: an internal error
+                raise ValueError("T_lidar_imu's roll, pitch and yaw are degrees within "
+                                 "-360..360 (x y z m, roll pitch yaw deg)")
             return self
         self.T_lidar_imu_matrix()
         return self

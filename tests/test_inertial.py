@@ -205,7 +205,8 @@ def test_imu_and_gnss_config_sections_check_the_extrinsics():
     for bad, needle in [({"imu": {"T_lidar_imu": [1, 2]}}, "6 numbers"),
                         ({"imu": {"T_lidar_imu": [2.0] + [0.0] * 15}}, "not a rigid transform"),
                         ({"gnss": {"lever_arm_m": [1.0]}}, "3 numbers"),
-                        ({"imu": {"time_offset_s": float("nan")}}, "imu.time_offset_s")]:
+                        ({"imu": {"time_offset_s": float("nan")}}, "imu.time_offset_s"),
+                        ({"imu": {"T_lidar_imu": [0, 0, 0, 0, 0, 1e300]}}, "within -360..360")]:
         with pytest.raises(ConfigError, match=needle):
             load_config(None, bad)
 

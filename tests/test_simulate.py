@@ -244,3 +244,11 @@ def test_simulate_elevation_error_biases_points_like_kittis_lasers():
         return s.points[(s.points[:, 2] < -1.0) & (np.hypot(*s.points[:, :2].T) < 15)]
 
     assert np.median(ground(tilted)[:, 2]) < np.median(ground(exact)[:, 2]) - 0.02
+
+
+def test_simulate_says_when_the_trajectory_ends_before_n_scans(tmp_path, caplog):
+    """--start 1099 --n-scans 5 on a 1101-pose trajectory gave 2 scans without a word."""
+    stamps, poses = straight(6, speed_mps=8.0)
+    s = simulate_sequence(poses, stamps, tmp_path, SMALL, seed=2, start=4, n_scans=5)
+    assert len(s.stamps_s) == 2
+    assert "simulating 2 scans, not the 5 asked for: the trajectory has 6 poses" in caplog.text

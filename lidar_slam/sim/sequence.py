@@ -274,6 +274,9 @@ def simulate_sequence(poses_world_lidar: np.ndarray, stamps_s: np.ndarray, out_d
                                                               start + n_scans)
     if stop <= start:
         raise ValueError(f"nothing to simulate: start {start}, stop {stop}")
+    if n_scans is not None and stop - start < n_scans:  # said, as run says a short input
+        log.warning("simulating %d scans, not the %d asked for: the trajectory has %d poses "
+                    "and --start is %d", stop - start, n_scans, len(poses_world_lidar), start)
     Tr = np.eye(4) if Tr_cam_lidar is None else np.asarray(Tr_cam_lidar, dtype=float)
     params = params or WorldParams()
     t0 = time.perf_counter()
