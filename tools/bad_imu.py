@@ -6,8 +6,9 @@ SEQ: a simulated sequence with an IMU (`lidar-slam simulate --motion handheld --
 For each case a copy of SEQ (the scans linked, imu.csv rewritten) goes to DIR/<case>/seq, then
 `lidar-slam run` (its lidar_slam.yaml as --config; --no-imu for the `no-imu` case) and
 `lidar-slam eval` against its poses.txt. Prints one row per case: exit code, ATE (m), whether
-summary.json says the IMU was used, the IMU check's verdict, the number of warning lines and
-the last line on stderr.
+summary.json says the IMU was used, the IMU check's verdict, the IMU factors in the final solve
+and the accelerometer's disagreement with the odometry (lidar_slam.frontend.imu_check), the
+number of warning lines and the last line on stderr.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ CASES = {
     "mount90z": "IMU mounted 90 deg about z, config not told",
     "clock50ms": "clock 0.05 s off",
     "half": "covering half the scans",
+    "accflip": "accelerometer's sign flipped",
+    "acc90z": "accelerometer's axes turned 90 deg about z, gyro not",
+    "accspike": "one accelerometer sample of 1000 m/s^2",
 }
 HEADER = "stamp_s,wx,wy,wz,ax,ay,az"
 
@@ -63,6 +67,12 @@ def corrupt(rows: np.ndarray, case: str) -> tuple[np.ndarray, str]:
     elif case == "half":
         mid = 0.5 * (r[0, 0] + r[-1, 0])
         r = r[r[:, 0] <= mid]
+    elif case == "accflip":
+        r[:, 4:7] = -r[:, 4:7]
+    elif case == "acc90z":
+        r[:, 4:7] = rotated_about_z(rows, 90.0)[:, 4:7]
+    elif case == "accspike":
+        r[len(r) // 2, 6] = 1000.0
     return r, "%.9f"
 
 
@@ -122,6 +132,8 @@ def run_case(seq: Path, out: Path, case: str) -> dict:
         row["imu_used"] = s.get("imu", {}).get("used")
         row["imu_rate_hz"] = s.get("imu", {}).get("rate_hz")
         row["imu_check"] = s.get("imu_check")
+        row["imu_final_factors"] = s.get("imu", {}).get("factors")  # IMU factors, final solve
+        row["acceleration_disagreement"] = s.get("imu", {}).get("acceleration_disagreement")
         ate = ate_m(run_dir, data)
         if ate is not None:
             row["ate_m"] = ate
@@ -129,15 +141,18 @@ def run_case(seq: Path, out: Path, case: str) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| imu.csv | exit | ATE (m) | imu.used | verdict | warnings | last line on stderr |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| imu.csv | exit | ATE (m) | imu.used | verdict | IMU factors in the final solve "
+             "| acceleration disagreement | warnings | last line on stderr |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         check = r.get("imu_check") or {}
         verdict = check.get("verdict", "") if isinstance(check, dict) else ""
         ate = f"{r['ate_m']:.3f}" if "ate_m" in r else "-"
         last = r["last_line"].replace("|", "/")
+        dis = r.get("acceleration_disagreement")
         lines.append(f"| {r['what']} | {r['exit']} | {ate} | {r.get('imu_used', '-')} | "
-                     f"{verdict} | {r['warnings']} | {last} |")
+                     f"{verdict} | {r.get('imu_final_factors', '-')} | "
+                     f"{'-' if dis is None else f'{dis:.3g}'} | {r['warnings']} | {last} |")
     return "\n".join(lines)
 
 

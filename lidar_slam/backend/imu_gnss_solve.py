@@ -28,6 +28,7 @@ from lidar_slam.backend import gnss as gnss_align
 from lidar_slam.backend import gtsam_graph, inertial_graph
 from lidar_slam.backend.factors import BetweenFactor, sigmas_to_information, with_rotation_floor
 from lidar_slam.config import SlamConfig
+from lidar_slam.frontend import imu_check
 from lidar_slam.geo import LocalEnu
 from lidar_slam.geometry import interpolate, inverse, make_pose
 from lidar_slam.imu import (
@@ -166,9 +167,23 @@ def imu_frame_poses(links: list[inertial_graph.ImuLink], sol: inertial_graph.Ine
 
 
 def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[int],
-              T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray]):
-    """The IMU links between keyframes, R_up_world (None without links), and the summary."""
-    links = _imu_links(ImuStream(imu), cfg, tr.kf_stamps_s, keys)
+              T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray],
+              C: np.ndarray):
+    """The IMU links between keyframes, R_up_world (None without links), and the summary. None
+    either when the accelerometer disagrees with the odometry (frontend.imu_check: its sign,
+    axes or a sample wrong), with one warning."""
+    stream = ImuStream(imu)
+    check = imu_check.acceleration_disagreement(stream, tr.frame_stamps_s, tr.frame_odom, C)
+    accel = {} if check is None else {"acceleration_disagreement": round(check[0], 4),
+                                      "acceleration_windows": check[1]}
+    if check is not None and check[0] > imu_check.MAX_ACCEL_DISAGREEMENT:
+        why = (f"left out of the final solve (its poses are lidar-only): its accelerations "
+               f"differ from the lidar odometry's {check[0]:.3g}x as much as those vary, over "
+               f"{check[1]} windows of {2 * imu_check.ACCEL_WINDOW_S:g} s (ax, ay, az with a "
+               f"wrong sign, axes or unit, or a glitch?)")
+        log.warning("%s: IMU %s", imu.source, why)
+        return [], None, {"factors": 0, "reason": why, **accel}
+    links = _imu_links(stream, cfg, tr.kf_stamps_s, keys)
     span = sum(ln.pim.deltaTij() for ln in links)
     if span < MIN_IMU_SPAN_S:
         return [], None, {"factors": 0, "reason": f"IMU covers {span:.2f} s between keyframes "
@@ -176,7 +191,7 @@ def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[in
     R_up_world = _up_rotation(links, T_world_imu, v_world)
     tilt = np.degrees(np.arccos(np.clip(R_up_world[2, 2], -1.0, 1.0)))
     return links, R_up_world, {"factors": len(links), "seconds_covered": round(span, 3),
-                               "world_tilt_deg": round(float(tilt), 4)}
+                               "world_tilt_deg": round(float(tilt), 4), **accel}
 
 
 def _up_rotation(links, T_world_imu: dict[int, np.ndarray], v_world: dict[int, np.ndarray]
@@ -379,7 +394,8 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     v_world = _velocities(T_world_kf, tr, C)
     T_world_imu = {k: T @ Cn[k] for k, T in T_world_kf.items()}
     if imu is not None:
-        links, R_up_world, summary["imu"] = _imu_part(cfg, imu, tr, keys, T_world_imu, v_world)
+        links, R_up_world, summary["imu"] = _imu_part(cfg, imu, tr, keys, T_world_imu, v_world,
+                                                        C)
     tied, alignment, enu, unused = None, None, None, {}
     if fixes is not None:
         tied, alignment, enu, unused = _tie_and_align(cfg, fixes, T_world_kf, tr, R_up_world)
