@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from conftest import assert_one_line_error
 
+from lidar_slam.errors import InputError
 from lidar_slam.io.datasets import boreas, kitti360, mulran, nclt, newer_college
 from lidar_slam.io.datasets.common import rigid, rot_z
 from lidar_slam.io.sources import open_source
@@ -276,3 +277,68 @@ def test_a_scan_named_otherwise_than_its_layout_is_one_line_naming_it(tmp_path):
     first.rename(bad)
     assert_one_line_error(_cli("run", str(seq), "--out", str(tmp_path / "o")), str(bad),
                           "Newer College cloud_<sec>_<nsec>.pcd")
+
+
+# -- a layout given half right: the message says what it looks like (a new user's pass) ---------
+
+
+def _copy(kind: str, tmp_path: Path) -> Path:
+    seq = tmp_path / Path(FIXTURES[kind][0]).name
+    shutil.copytree(DATA / FIXTURES[kind][0], seq)
+    return seq
+
+
+def test_boreas_without_applanix_or_calib_names_its_lidar_folder(tmp_path):
+    """It said "no scans found" of a folder whose lidar/ holds them."""
+    seq = _copy("boreas", tmp_path)
+    shutil.rmtree(seq / "applanix")
+    shutil.rmtree(seq / "calib")
+    with pytest.raises(InputError) as err:
+        open_source(seq)
+    text = str(err.value)
+    assert "no scans found" in text and "a Boreas sequence? it needs applanix" in text
+    assert f"{seq / 'lidar'} (" in text
+
+
+def test_nclt_with_velodyne_for_velodyne_sync_says_nclt_not_kitti(tmp_path):
+    """velodyne/ in place of velodyne_sync/ was read as KITTI: "calib file does not exist"."""
+    seq = _copy("nclt", tmp_path)
+    (seq / "velodyne_sync").rename(seq / "velodyne")
+    with pytest.raises(InputError) as err:
+        open_source(seq)
+    text = str(err.value)
+    assert "no calib.txt" in text and "an NCLT session? its scans go in velodyne_sync/" in text
+
+
+def test_mulran_scans_numbered_not_stamped_are_one_line(tmp_path):
+    """000000.bin .. were read as stamps 1 ns apart."""
+    seq = _copy("mulran", tmp_path)
+    ouster = seq / "sensor_data" / "Ouster"
+    for k, f in enumerate(sorted(ouster.glob("*.bin"))):
+        f.rename(ouster / f"{k:06d}.bin")
+    with pytest.raises(InputError, match="numbered, not stamped"):
+        open_source(seq)
+
+
+def test_boreas_scans_of_four_floats_are_refused_not_read_as_garbage(tmp_path):
+    """KITTI's four float32 a point, 3 x 8 points: a multiple of Boreas's 24 bytes, read as
+    16 points of nonsense."""
+    seq = _copy("boreas", tmp_path)
+    first = sorted((seq / "lidar").glob("*.bin"))[0]
+    points = np.c_[np.random.default_rng(0).uniform(-20, 20, (24, 3)), np.full(24, 0.5)]
+    points.astype(np.float32).tofile(first)
+    source = open_source(seq)
+    with pytest.raises(InputError, match="not Boreas's six float32 a point"):
+        next(iter(source.scans(0, 1)))
+
+
+def test_kitti_raw_without_timestamps_advises_its_own_format(tmp_path, caplog):
+    """The advice was "one stamp in s per scan": KITTI raw's file holds date-times."""
+    drive = tmp_path / "2011_09_26_drive_0001_sync"
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    for i in range(3):
+        shutil.copy(sorted((ROOT / "sample_scans" / "velodyne").glob("*.bin"))[i],
+                    drive / "velodyne_points" / "data" / f"{i:010d}.bin")
+    source = open_source(drive)
+    assert source.kind == "kitti_raw"
+    assert "one date and time per scan, 2011-09-26 13:02:25.964389445" in caplog.text

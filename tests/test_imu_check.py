@@ -71,6 +71,8 @@ def test_the_walk_is_one_where_the_imu_helps(walk, tmp_path, caplog):
     summary, said = case(walk, tmp_path, "imu", caplog)
     assert summary["imu"]["used"] and summary["imu_check"]["verdict"] == "ok"
     assert 0.9 < summary["imu_check"]["gyro_to_lidar_rotation_ratio"] < 1.1
+    assert "read_as" not in summary["imu"] and summary["imu"]["factors"] > 0
+    assert summary["imu"]["acceleration_disagreement"] < 0.5
     assert summary["ate_rmse_m"] < walk[1]["ate_rmse_m"]
     assert not lines_with(said, "imu.csv")
 
@@ -82,6 +84,7 @@ def test_stamps_in_ns_and_accelerations_in_g_are_converted_in_one_line(walk, tmp
     """Stamps in ns ran with rate_hz 0 (ATE 6.6 m on 30 s); g was refused: both now used."""
     summary, said = case(walk, tmp_path, name, caplog)
     assert len(lines_with(said, needle)) == 1
+    assert summary["imu"]["read_as"] == ({"stamps": "ns"} if name == "ns" else {"accel": "g"})
     assert summary["imu"]["used"] and summary["imu"]["rate_hz"] == pytest.approx(200.0)
     assert summary["imu_check"]["verdict"] == "ok"
     assert summary["ate_rmse_m"] < walk[1]["ate_rmse_m"]
@@ -139,6 +142,15 @@ def test_an_accelerometer_gone_wrong_is_left_out_of_the_final_solve_in_one_line(
     assert summary["ate_rmse_m"] <= walk[1]["ate_rmse_m"]
 
 
+def test_an_imu_too_short_for_either_end_is_said_unused(walk, tmp_path, caplog):
+    """Two samples: the front-end never initialised it and the final solve had nothing to
+    link; summary.json said imu.used true (with a reason)."""
+    summary, said = case(walk, tmp_path, "two", caplog)
+    assert summary["imu"]["used"] is False and "need 1.0 s" in summary["imu"]["reason"]
+    assert len(lines_with(said, "cover only part of the scans")) == 1
+    assert summary["ate_rmse_m"] == pytest.approx(walk[1]["ate_rmse_m"], rel=1e-6)
+
+
 def test_every_case_of_the_table_is_a_change_of_the_simulated_file():
     rows = np.c_[np.arange(10) * 0.005, np.tile([0.1, 0.2, 0.3, 0.0, 0.0, 9.81], (10, 1))]
     assert corrupt(rows, "ns")[0][1, 0] == 5e6 and corrupt(rows, "ns")[1] == "%d"
@@ -151,6 +163,7 @@ def test_every_case_of_the_table_is_a_change_of_the_simulated_file():
     np.testing.assert_allclose(turned[0, 6], 9.81)
     spiked = corrupt(rows, "accspike")[0]
     assert (spiked[:, 6] == 1000.0).sum() == 1
+    assert len(corrupt(rows, "two")[0]) == 2
 
 
 def test_the_accelerometer_check_tells_an_imu_that_explains_the_motion_from_one_that_does_not():

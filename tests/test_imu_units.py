@@ -80,3 +80,31 @@ def test_accelerations_with_gravity_removed_are_refused_not_taken_for_g(tmp_path
         (len(rows), 2))]
     with pytest.raises(InputError, match="expected about 9.81 with gravity included"):
         read_imu_csv(write(tmp_path / "imu.csv", rows))
+
+
+@pytest.mark.parametrize("rate_hz,unit,scale", [(1.0, "ns", 1e9), (10.0, "ns", 1e9),
+                                                (20.0, "ns", 1e9), (1.0, "ms", 1e3),
+                                                (1.0, "s", 1.0), (1 / 30, "s", 1.0),
+                                                (50.0, "s", 1.0)])
+def test_gnss_stamps_in_ns_or_ms_are_converted_and_sparse_or_fast_fixes_left_in_s(
+        tmp_path, caplog, rate_hz, unit, scale):
+    """gnss.csv in ns was taken as s (1e9 s apart: no overlap with the scans). A fix every 30 s
+    and a 50 Hz receiver in s fit no other unit better: left as read, not refused."""
+    from lidar_slam.io.imu_gnss import read_gnss_csv
+
+    t = 1_700_000_000.0 + np.arange(20) / rate_hz
+    rows = np.c_[np.round(t * scale) if scale != 1.0 else t, np.full(20, 49.0),
+                 np.full(20, 8.4), np.full(20, 110.0), np.ones(20), np.full(20, 2.0)]
+    path = tmp_path / "gnss.csv"
+    np.savetxt(path, rows, delimiter=",", comments="",
+               header="stamp_s,lat_deg,lon_deg,alt_m,sigma_h_m,sigma_v_m",
+               fmt=["%d" if scale != 1.0 else "%.6f"] + ["%.10g"] * 5)
+    with caplog.at_level(logging.WARNING):
+        fixes = read_gnss_csv(path)
+    np.testing.assert_allclose(fixes.stamp_s, t, atol=1e-3)
+    said = [r.getMessage() for r in caplog.records]
+    if unit == "s":
+        assert not said and fixes.read_as == {}
+    else:
+        assert len(said) == 1 and said[0].startswith(f"{path}: stamps read as {unit} ")
+        assert fixes.read_as == {"stamps": unit}

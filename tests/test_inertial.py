@@ -77,7 +77,7 @@ def test_non_finite_imu_samples_are_dropped_with_a_counted_warning(tmp_path, cap
     imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
     assert len(imu) == 97 and imu.dropped["invalid"] == 3
     assert np.isfinite(imu.accel_mps2).all() and np.isfinite(imu.gyro_radps).all()
-    assert "dropped 3 of 100 IMU samples (3 non-finite or invalid" in caplog.text
+    assert "dropped 3 of 100 IMU samples (3 non-finite, 0 duplicate" in caplog.text
     assert "imu.csv" in caplog.text
 
 
@@ -89,7 +89,7 @@ def test_imu_samples_no_imu_could_read_are_dropped_as_invalid(tmp_path, caplog):
     rows[60][2] = -1e30
     imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
     assert len(imu) == 98 and imu.dropped["invalid"] == 2
-    assert "dropped 2 of 100 IMU samples (2 non-finite or invalid" in caplog.text
+    assert "dropped 2 of 100 IMU samples (2 beyond 10000 rad/s or 10000 m/s^2" in caplog.text
     rows = _imu_rows().tolist()
     rows[40][4] = 156.0  # 16 g: a real accelerometer's range, kept
     assert len(read_imu_csv(_write(tmp_path / "imu2.csv", IMU_HEADER, rows))) == 100
@@ -157,7 +157,17 @@ def test_gnss_csv_drops_invalid_fixes_and_keeps_the_rest(tmp_path, caplog):
     assert gnss.dropped == {"invalid": 3, "duplicate_stamp": 1, "out_of_order": 0}
     assert (gnss.sigma_h_m == 1).all() and (gnss.sigma_v_m == 2).all()
     np.testing.assert_allclose(gnss.lat_deg[0], 49.0)
-    assert "dropped 4 of 11 GNSS fixes" in caplog.text
+    assert ("dropped 4 of 11 GNSS fixes (1 non-finite, 1 latitude or longitude out of range, "
+            "1 sigma_h_m or sigma_v_m not positive, 1 duplicate stamps" in caplog.text)
+
+
+def test_gnss_csv_whose_sigmas_are_all_zero_is_refused_naming_the_sigmas(tmp_path):
+    """It said "0 usable GNSS fixes of 10 (... 10 non-finite or invalid ...)": which column?"""
+    rows = _gnss_rows().tolist()
+    for row in rows:
+        row[4] = 0.0
+    with pytest.raises(InputError, match="10 sigma_h_m or sigma_v_m not positive"):
+        read_gnss_csv(_write(tmp_path / "gnss.csv", GNSS_HEADER, rows))
 
 
 def test_streams_on_another_clock_than_the_scans_are_refused_unless_offset(tmp_path):
@@ -303,7 +313,9 @@ def test_run_reports_the_imu_and_gnss_it_read_in_summary_json(tmp_path):
     proc = _run(data, "--out", tmp_path / "o", "--n-scans", "3", "--no-loops", "--config", given)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
-    assert summary["imu"]["used"] and summary["imu"]["samples"] == n
+    # read (samples, rate), but three scans are too short for either end to use it: said so
+    assert summary["imu"]["used"] is False and "need 1.0 s" in summary["imu"]["reason"]
+    assert summary["imu"]["samples"] == n
     assert summary["imu"]["rate_hz"] == pytest.approx(200, rel=1e-3)
     assert summary["gnss"]["source"] == str(data / "gnss.csv")
     # three scans span 3 fixes, fewer than the alignment needs: read, not used, and said why
@@ -410,3 +422,15 @@ def test_the_ouster_bags_own_imu_on_the_sensor_clock_does_not_stop_a_lidar_run(r
         "found from the data: 1 scans registered" in proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["imu"]["used"] is False and summary["frames"] == 1
+
+
+def test_the_terminal_summary_shows_the_fixes_used_rejected_and_unused_and_units_read():
+    """A run's table said gnss used=True and nothing of the fixes it left out (multipath jumps,
+    fixes outside the scans): their counts are shown, as is a unit converted on reading."""
+    from lidar_slam.cli.common import summary_table
+
+    table = summary_table({"gnss": {"used": True, "source": "gnss.csv", "fixes_used": 40,
+                                    "fixes_rejected": 2, "fixes_unused": 5, "dropped": {}},
+                           "imu": {"used": True, "read_as": {"stamps": "ns"}, "samples": 10}})
+    assert "fixes_used=40, fixes_rejected=2, fixes_unused=5" in table
+    assert "read_as={'stamps': 'ns'}" in table

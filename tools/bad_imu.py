@@ -35,6 +35,7 @@ CASES = {
     "accflip": "accelerometer's sign flipped",
     "acc90z": "accelerometer's axes turned 90 deg about z, gyro not",
     "accspike": "one accelerometer sample of 1000 m/s^2",
+    "two": "two samples only",
 }
 HEADER = "stamp_s,wx,wy,wz,ax,ay,az"
 
@@ -73,6 +74,8 @@ def corrupt(rows: np.ndarray, case: str) -> tuple[np.ndarray, str]:
         r[:, 4:7] = rotated_about_z(rows, 90.0)[:, 4:7]
     elif case == "accspike":
         r[len(r) // 2, 6] = 1000.0
+    elif case == "two":
+        r = r[:2]
     return r, "%.9f"
 
 

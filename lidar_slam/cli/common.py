@@ -142,7 +142,8 @@ UNITS = {"wall_s": "s", "fps": "frames/s", "peak_rss_mb": "MB", "path_length_m":
 
 
 # Of a nested summary entry with many fields, the ones the terminal table shows.
-SUMMARY_KEYS_SHOWN = ("used", "source", "samples", "rate_hz", "reason", "verdict")
+SUMMARY_KEYS_SHOWN = ("used", "source", "samples", "rate_hz", "read_as", "reason", "verdict",
+                      "fixes_used", "fixes_rejected", "fixes_unused")
 
 
 def summary_table(summary: dict) -> str:

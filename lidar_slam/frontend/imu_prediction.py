@@ -277,8 +277,7 @@ class ImuFrontend:
         """The gyro multiplied by factor from here on (and in the final solve: self.samples);
         the state learnt from the unscaled one dropped."""
         s = self.samples
-        self.samples = ImuSamples(s.stamp_s, s.gyro_radps * factor, s.accel_mps2, s.source,
-                                  s.dropped)
+        self.samples = dataclasses.replace(s, gyro_radps=s.gyro_radps * factor)
         self.stream = ImuStream(self.samples)
         self._restart()
         self.R_G_Wo, self.bias = None, gtsam.imuBias.ConstantBias()

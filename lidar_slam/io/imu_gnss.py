@@ -13,6 +13,7 @@ refused (InputError, exit 2).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,14 +50,14 @@ class ImuSamples:
     accel_mps2: np.ndarray
     source: str
     dropped: dict[str, int] = field(default_factory=dict)
+    read_as: dict[str, str] = field(default_factory=dict)  # io.imu_units: units converted
 
     def __len__(self) -> int:
         return len(self.stamp_s)
 
     def shifted(self, offset_s: float) -> ImuSamples:
         """The same samples with offset_s added to every stamp (onto the lidar clock)."""
-        return ImuSamples(self.stamp_s + offset_s, self.gyro_radps, self.accel_mps2,
-                          self.source, self.dropped)
+        return dataclasses.replace(self, stamp_s=self.stamp_s + offset_s)
 
 
 @dataclass(frozen=True)
@@ -72,14 +73,14 @@ class GnssFixes:
     sigma_v_m: np.ndarray
     source: str
     dropped: dict[str, int] = field(default_factory=dict)
+    read_as: dict[str, str] = field(default_factory=dict)  # io.imu_units: units converted
 
     def __len__(self) -> int:
         return len(self.stamp_s)
 
     def shifted(self, offset_s: float) -> GnssFixes:
         """The same fixes with offset_s added to every stamp (onto the lidar clock)."""
-        return GnssFixes(self.stamp_s + offset_s, self.lat_deg, self.lon_deg, self.alt_m,
-                         self.sigma_h_m, self.sigma_v_m, self.source, self.dropped)
+        return dataclasses.replace(self, stamp_s=self.stamp_s + offset_s)
 
 
 def _read_table(path: Path, columns: tuple[str, ...]) -> np.ndarray:
@@ -126,11 +127,19 @@ def _first_bad_line(body: str, n_columns: int) -> str:
     return "not a table of numbers"
 
 
-def _clean(path: Path, rows: np.ndarray, valid: np.ndarray, what: str
+def _clean(path: Path, rows: np.ndarray, bad: dict[str, np.ndarray], what: str
            ) -> tuple[np.ndarray, dict[str, int]]:
-    """Rows kept (valid, and each stamp after the last kept one) and the counts dropped; one
-    warning naming the file when anything was dropped, InputError when fewer than 2 remain."""
+    """Rows kept (none of the masks in bad, each named for why its rows cannot be used, and
+    each stamp after the last kept one) and the counts dropped; one warning naming the file and
+    why when anything was dropped, InputError when fewer than 2 remain."""
+    valid = ~np.any([np.asarray(m, dtype=bool) for m in bad.values()], axis=0)
     invalid = int((~valid).sum())
+    whys, taken = [], np.zeros(len(rows), dtype=bool)
+    for why, mask in bad.items():  # each row counted once, under its first reason
+        n = int((mask & ~taken).sum())
+        taken |= mask
+        if n:
+            whys.append(f"{n} {why}")
     stamps = rows[valid, 0]
     keep = np.zeros(len(stamps), dtype=bool)
     duplicate = backwards = 0
@@ -144,14 +153,13 @@ def _clean(path: Path, rows: np.ndarray, valid: np.ndarray, what: str
             backwards += 1
     kept = rows[valid][keep]
     dropped = {"invalid": invalid, "duplicate_stamp": duplicate, "out_of_order": backwards}
+    counts = ", ".join(whys + [f"{duplicate} duplicate stamps", f"{backwards} out of order"])
     if invalid or duplicate or backwards:
-        log.warning("%s: dropped %d of %d %s (%d non-finite or invalid, %d duplicate stamps, "
-                    "%d out of order)", path, len(rows) - len(kept), len(rows), what, invalid,
-                    duplicate, backwards)
+        log.warning("%s: dropped %d of %d %s (%s)", path, len(rows) - len(kept), len(rows), what,
+                    counts)
     if len(kept) < 2:
         raise InputError(path, f"{len(kept)} usable {what} of {len(rows)} (need at least 2; "
-                               f"{invalid} non-finite or invalid, {duplicate} duplicate stamps, "
-                               f"{backwards} out of order)")
+                               f"{counts})")
     return kept, dropped
 
 
@@ -161,17 +169,19 @@ def read_imu_csv(path: str | Path) -> ImuSamples:
     from lidar_slam.io.imu_units import to_standard_units
 
     p = Path(path)
-    return imu_from_rows(p, to_standard_units(_read_table(p, IMU_COLUMNS), p))
+    rows, read_as = to_standard_units(_read_table(p, IMU_COLUMNS), p)
+    return imu_from_rows(p, rows, read_as=read_as)
 
 
-def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None
-                  ) -> ImuSamples:
+def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None,
+                  read_as: dict[str, str] | None = None) -> ImuSamples:
     """ImuSamples from (N, 7) rows in the imu.csv column order, cleaned as read_imu_csv."""
     with np.errstate(invalid="ignore"):
-        plausible = ((np.abs(rows[:, 1:4]) <= MAX_ABS_RATE).all(axis=1)
-                     & (np.abs(rows[:, 4:7]) <= MAX_ABS_SPECIFIC_FORCE).all(axis=1))
-    kept, counts = _clean(Path(source), rows, np.isfinite(rows).all(axis=1) & plausible,
-                          "IMU samples")
+        bad = {"non-finite": ~np.isfinite(rows).all(axis=1),
+               f"beyond {MAX_ABS_RATE:g} rad/s or {MAX_ABS_SPECIFIC_FORCE:g} m/s^2": ~(
+                   (np.abs(rows[:, 1:4]) <= MAX_ABS_RATE).all(axis=1)
+                   & (np.abs(rows[:, 4:7]) <= MAX_ABS_SPECIFIC_FORCE).all(axis=1))}
+    kept, counts = _clean(Path(source), rows, bad, "IMU samples")
     dt = np.diff(kept[:, 0])
     gaps = int((dt > GAP_PERIODS * np.median(dt)).sum())
     if gaps:
@@ -184,25 +194,30 @@ def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] 
         raise InputError(source, f"median specific force {g_median:.3g} m/s^2 (expected about "
                                  f"9.81 with gravity included: in g, or gravity removed?)")
     return ImuSamples(kept[:, 0], kept[:, 1:4].copy(), kept[:, 4:7].copy(), str(source),
-                      {**counts, **(dropped or {})})
+                      {**counts, **(dropped or {})}, dict(read_as or {}))
 
 
 def read_gnss_csv(path: str | Path) -> GnssFixes:
     """gnss.csv (see the module docstring): rows with a non-finite value, a latitude or
     longitude out of range or a sigma that is not positive dropped, stamps as read_imu_csv."""
+    from lidar_slam.io.imu_units import gnss_stamps_in_s
+
     p = Path(path)
-    return gnss_from_rows(p, _read_table(p, GNSS_COLUMNS))
+    rows, read_as = gnss_stamps_in_s(_read_table(p, GNSS_COLUMNS), p)
+    return gnss_from_rows(p, rows, read_as=read_as)
 
 
-def gnss_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None
-                   ) -> GnssFixes:
+def gnss_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] | None = None,
+                   read_as: dict[str, str] | None = None) -> GnssFixes:
     """GnssFixes from (N, 6) rows in the gnss.csv column order, cleaned as read_gnss_csv."""
     with np.errstate(invalid="ignore"):
-        valid = (np.isfinite(rows).all(axis=1) & (np.abs(rows[:, 1]) <= 90)
-                 & (np.abs(rows[:, 2]) <= 180) & (rows[:, 4] > 0) & (rows[:, 5] > 0))
-    kept, counts = _clean(Path(source), rows, valid, "GNSS fixes")
+        bad = {"non-finite": ~np.isfinite(rows).all(axis=1),
+               "latitude or longitude out of range": ~((np.abs(rows[:, 1]) <= 90)
+                                                       & (np.abs(rows[:, 2]) <= 180)),
+               "sigma_h_m or sigma_v_m not positive": ~((rows[:, 4] > 0) & (rows[:, 5] > 0))}
+    kept, counts = _clean(Path(source), rows, bad, "GNSS fixes")
     return GnssFixes(*(kept[:, i].copy() for i in range(6)), str(source),
-                     {**counts, **(dropped or {})})
+                     {**counts, **(dropped or {})}, dict(read_as or {}))
 
 
 def find_beside(folder: Path, name: str) -> Path | None:
@@ -214,13 +229,15 @@ def find_beside(folder: Path, name: str) -> Path | None:
 
 
 def stream_info(stamp_s: np.ndarray, source: str, dropped: dict[str, int],
-                time_offset_s: float) -> dict:
-    """What summary.json says of an IMU or GNSS stream that was used."""
+                time_offset_s: float, read_as: dict[str, str] | None = None) -> dict:
+    """What summary.json says of an IMU or GNSS stream that was used (read_as: the units
+    converted, io.imu_units)."""
     span = float(stamp_s[-1] - stamp_s[0])
     return {"source": source, "samples": int(len(stamp_s)),
             "rate_hz": round((len(stamp_s) - 1) / span, 3) if span > 0 else None,
             "first_stamp_s": float(stamp_s[0]), "last_stamp_s": float(stamp_s[-1]),
-            "time_offset_s": time_offset_s, "dropped": dict(dropped)}
+            "time_offset_s": time_offset_s, "dropped": dict(dropped),
+            **({"read_as": dict(read_as)} if read_as else {})}
 
 
 def overlap_problem(stamp_s: np.ndarray, scan_first_s: float, scan_last_s: float, what: str

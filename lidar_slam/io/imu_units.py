@@ -6,6 +6,7 @@ in another unit is converted with one warning saying what was assumed, or refuse
   ms, us and ns (the plausible rates of two units are 1000x apart and the window is 500x wide:
   at most one unit fits). Whether the converted stamps are on the scans' clock is checked
   after (io.imu_gnss.check_overlap).
+  gnss.csv's the same way, from a receiver's rates (GNSS_RATES_HZ).
 - Specific force: its median norm is ~9.81 m/s^2 on any recording not in free fall, ~1 in g
   (and then seldom far below 1: gravity dominates). Gravity removed (a median norm of 0..2
   m/s^2 that drops to ~0 at every pause) or anything else is refused (io.imu_gnss).
@@ -26,30 +27,53 @@ from lidar_slam.errors import InputError
 log = logging.getLogger(__name__)
 
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 5000.0  # an IMU's sample rate, in any unit of its stamps
+# A GNSS receiver's fix rate, 1000x wide (one unit fits): a fix every 40 s to 25 Hz. gnss.csv
+# stamps that fit no unit stay as read (a 50 Hz receiver in s): the overlap check judges them.
+GNSS_RATES_HZ = (0.025, 25.0)
 STAMP_UNITS = ((1.0, "s"), (1e-3, "ms"), (1e-6, "us"), (1e-9, "ns"))
 STANDARD_GRAVITY_MPS2 = 9.80665  # 1 g
 G_RANGE = (0.5, 2.0)  # median norm of the specific force of a file in g (~1)
 
 
-def stamp_scale(stamps: np.ndarray, source: str | Path) -> float:
+def stamp_scale(stamps: np.ndarray, source: str | Path,
+                rates_hz: tuple[float, float] = (MIN_RATE_HZ, MAX_RATE_HZ), what: str = "an IMU"
+                ) -> float:
     """Seconds per unit of the stamps (1, 1e-3, 1e-6 or 1e-9), from their median spacing;
-    InputError when no unit gives an IMU rate of MIN_RATE_HZ..MAX_RATE_HZ."""
+    InputError when no unit gives a rate in rates_hz (an IMU's by default)."""
+    lo_hz, hi_hz = rates_hz
     steps = np.diff(np.asarray(stamps, dtype=np.float64))
     steps = steps[np.isfinite(steps) & (steps > 0)]
     if not len(steps):
         return 1.0  # no two increasing stamps: io.imu_gnss refuses the file
     spacing = float(np.median(steps))
     fits = [(scale, unit) for scale, unit in STAMP_UNITS
-            if MIN_RATE_HZ <= 1.0 / (spacing * scale) <= MAX_RATE_HZ]
+            if lo_hz <= 1.0 / (spacing * scale) <= hi_hz]
     if not fits:
-        raise InputError(source, f"median stamp spacing {spacing:.6g} is not that of an IMU at "
-                                 f"{MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz in s, ms, us or ns")
+        raise InputError(source, f"median stamp spacing {spacing:.6g} is not that of {what} at "
+                                 f"{lo_hz:g}..{hi_hz:g} Hz in s, ms, us or ns")
     scale, unit = fits[0]
     if scale != 1.0:
         log.warning("%s: stamps read as %s (median spacing %.6g: %.4g Hz in %s, %.3g Hz in s); "
                     "converted to s", source, unit, spacing, 1.0 / (spacing * scale), unit,
                     1.0 / spacing)
     return scale
+
+
+def gnss_stamps_in_s(rows: np.ndarray, source: str | Path) -> tuple[np.ndarray, dict[str, str]]:
+    """gnss.csv rows with stamps in s (told as the IMU's, from a GNSS receiver's rates), and
+    {"stamps": unit} when they were in another unit."""
+    rows = np.asarray(rows, dtype=np.float64)
+    if len(rows) < 2:
+        return rows, {}
+    try:
+        scale = stamp_scale(rows[:, 0], source, GNSS_RATES_HZ, "a GNSS receiver")
+    except InputError:
+        return rows, {}
+    if scale == 1.0:
+        return rows, {}
+    out = rows.copy()
+    out[:, 0] *= scale
+    return out, {"stamps": dict((s, u) for s, u in STAMP_UNITS)[scale]}
 
 
 def accel_scale(accel: np.ndarray, source: str | Path) -> float:
@@ -69,15 +93,20 @@ def accel_scale(accel: np.ndarray, source: str | Path) -> float:
     return 1.0
 
 
-def to_standard_units(rows: np.ndarray, source: str | Path) -> np.ndarray:
-    """imu.csv rows (N, 7) with stamps in s and specific force in m/s^2 (see the module doc)."""
+def to_standard_units(rows: np.ndarray, source: str | Path) -> tuple[np.ndarray, dict[str, str]]:
+    """imu.csv rows (N, 7) with stamps in s and specific force in m/s^2 (see the module doc),
+    and the units the file was read in where they were not those (summary.json imu.read_as:
+    {"stamps": "ns", "accel": "g"})."""
     rows = np.asarray(rows, dtype=np.float64)
     if len(rows) < 2:
-        return rows
+        return rows, {}
     t_scale, a_scale = stamp_scale(rows[:, 0], source), accel_scale(rows[:, 4:7], source)
-    if t_scale == 1.0 and a_scale == 1.0:
-        return rows
+    read_as = {**({"stamps": dict((s, u) for s, u in STAMP_UNITS)[t_scale]}
+                  if t_scale != 1.0 else {}),
+               **({"accel": "g"} if a_scale != 1.0 else {})}
+    if not read_as:
+        return rows, read_as
     out = rows.copy()
     out[:, 0] *= t_scale
     out[:, 4:7] *= a_scale
-    return out
+    return out, read_as

@@ -100,18 +100,52 @@ def _lines_of(path: Path, rows: np.ndarray, files: list[Path], what: str) -> np.
     return rows[[int(n) for n in numbers]]
 
 
-def _assumed_stamps(path: Path, n: int) -> np.ndarray:
+def _assumed_stamps(path: Path, n: int, holds: str = "one stamp in s per scan") -> np.ndarray:
     """Stamps DEFAULT_PERIOD_S apart, said out loud: a 5 Hz sensor read this way gets half its
-    true speed (the poses are right, their stamps and the velocities are not)."""
+    true speed (the poses are right, their stamps and the velocities are not). holds: what the
+    missing file would hold, for the advice."""
     if n > 1:
-        log.warning("%s not found: scans taken as %.1f s apart (%.0f Hz); add it (one stamp in "
-                    "s per scan) if the sensor ran at another rate", path, DEFAULT_PERIOD_S,
-                    1.0 / DEFAULT_PERIOD_S)
+        log.warning("%s not found: scans taken as %.1f s apart (%.0f Hz); add it (%s) if the "
+                    "sensor ran at another rate", path, DEFAULT_PERIOD_S, 1.0 / DEFAULT_PERIOD_S,
+                    holds)
     return np.arange(n) * DEFAULT_PERIOD_S
 
 
 def _stamp_ns(stamp_s: float, known: bool) -> int | None:
     return round(stamp_s * 1e9) if known else None
+
+
+# Files beside a folder's scans that name a public dataset, and the layout it then needs (the
+# readers in io.datasets and docs/datasets.md).
+LAYOUT_HINTS = (("ms25.csv", "an NCLT session? its scans go in velodyne_sync/"),
+                ("gps.csv", "an NCLT session? its scans go in velodyne_sync/"),
+                ("global_pose.csv", "a MulRan sequence? its scans go in sensor_data/Ouster/"),
+                ("lidar", "a Boreas sequence? it needs applanix/lidar_poses.csv or calib/ beside "
+                          "lidar/"))
+
+
+def _subfolders_with_scans(root: Path) -> list[tuple[str, int]]:
+    """(name, scan files) of root's subfolders that hold scans."""
+    out = []
+    for sub in sorted(p for p in root.iterdir() if p.is_dir()):
+        try:
+            n = len(_scan_files(sub))
+        except OSError:
+            continue
+        if n:
+            out.append((sub.name, n))
+    return out
+
+
+def _other_layout_hint(root: Path) -> str:
+    """What the folder might be instead: a public dataset whose telltale file is here, and the
+    subfolders that hold scans (pass one as a folder of scans)."""
+    said = [why for name, why in LAYOUT_HINTS if (root / name).exists()]
+    subs = _subfolders_with_scans(root)
+    if subs:
+        said.append("or pass a folder of scans: " + ", ".join(
+            f"{root / name} ({n} scans)" for name, n in subs[:3]))
+    return "; ".join(dict.fromkeys(said)) or "or pass a folder of scans"
 
 
 class FolderSource(StreamsBesideScans):
@@ -137,7 +171,8 @@ class FolderSource(StreamsBesideScans):
             files = _scan_files(root / "scans")
         if not files:
             bags = sorted(p.name for p in root.iterdir() if p.suffix in (".bag", ".mcap", ".db3"))
-            hint = f"; a recording is here: pass the file itself ({root / bags[0]})" if bags else ""
+            hint = (f"; a recording is here: pass the file itself ({root / bags[0]})" if bags
+                    else f"; {_other_layout_hint(root)}" if _subfolders_with_scans(root) else "")
             raise InputError(root, f"no scans found (looked for {', '.join(SCAN_SUFFIXES)} "
                                    f"files){hint}")
         self.files = files
@@ -190,6 +225,9 @@ class KittiSource(StreamsBesideScans):
         if not self.files:
             raise InputError(root / "velodyne", "no .bin scans found")
         self.vertical_correction = vertical_correction
+        if not (root / "calib.txt").is_file():
+            raise InputError(root, f"holds velodyne/ but no calib.txt: a KITTI sequence needs it "
+                                   f"(its Tr); {_other_layout_hint(root)}")
         self.Tr = read_kitti_calib_tr(root / "calib.txt")
         stamps = _load_stamps(root / "times.txt", len(self.files), self.files)
         self.stamps_known = stamps is not None
@@ -258,7 +296,10 @@ class KittiRawSource(StreamsBesideScans):
                 raise InputError(stamps_path, f"has {len(self.stamps)} stamps for "
                                               f"{len(self.files)} scans")
         else:
-            self.stamps = _assumed_stamps(stamps_path, len(self.files))
+            self.stamps = _assumed_stamps(stamps_path, len(self.files),
+                                          "KITTI raw's: one date and time per scan, "
+                                          "2011-09-26 13:02:25.964389445, from the drive's "
+                                          "download")
 
     @property
     def input_notes(self) -> dict[str, int]:

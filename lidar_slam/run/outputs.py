@@ -210,6 +210,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary.update(extra or {})
     for key, entry in result.inertial_summary.items():  # the back-end's use of the IMU / GNSS
         summary[key] = {**(summary.get(key) or {}), **entry}
+    imu, front = summary.get("imu"), summary.get("imu_frontend")
+    if (imu and imu.get("used") and imu.get("factors") == 0 and front
+            and front.get("initialisations") == 0):  # read, but neither end could use it
+        imu["used"] = False
     if result.gnss_fixes:
         write_gnss_fixes(out_dir / "gnss_fixes.csv", result.gnss_fixes)
     if n and painter is not None:

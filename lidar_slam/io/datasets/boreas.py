@@ -39,6 +39,7 @@ from lidar_slam.io.pointcloud import CloudData
 
 KIND = "boreas"
 FIELDS = 6  # x, y, z, intensity, laser, t
+MAX_ABS_POINT_TIME_S = 1.0  # a point's t about the sweep's middle: +-0.05 s at 10 Hz
 
 
 def detect(path: Path) -> Path | None:
@@ -89,6 +90,12 @@ def read_lidar(path: Path, stamp_s: float) -> CloudData:
         raise InputError(path, f"{size} bytes is not a multiple of 24 (Boreas lidar: float32 x, "
                                "y, z, intensity, laser, t)")
     data = np.fromfile(path, dtype=np.float32).reshape(-1, FIELDS)
+    with np.errstate(invalid="ignore"):
+        wrong = ~(np.abs(data[:, 5]) <= MAX_ABS_POINT_TIME_S)
+    if wrong.any():  # four float32 a point (KITTI's) whose count happens to divide by 6
+        raise InputError(path, f"{int(wrong.sum())} of {len(data)} points have a time beyond "
+                               f"+-{MAX_ABS_POINT_TIME_S:g} s of the stamp: not Boreas's six "
+                               f"float32 a point (x, y, z, intensity, laser, t)?")
     return CloudData(data[:, :3].astype(np.float64),
                      relative_seconds(data[:, 5], round(stamp_s * 1e9)), data[:, 3].copy())
 

@@ -29,6 +29,10 @@ def require(path: Path, what: str) -> Path:
     return path
 
 
+# A lidar's scan period: the median spacing of stamps read from file names must fall here.
+MIN_SCAN_PERIOD_S, MAX_SCAN_PERIOD_S = 1e-3, 10.0
+
+
 def stamped_files(folder: Path, suffix: str, stamp_s: Callable[[str], float],
                   what: str) -> tuple[list[Path], np.ndarray]:
     """The files of a folder named by their stamps, in time order, with the stamps (s); one
@@ -48,7 +52,20 @@ def stamped_files(folder: Path, suffix: str, stamp_s: Callable[[str], float],
     if len(stamps) > 1 and not (np.diff(stamps) > 0).all():
         k = int(np.flatnonzero(np.diff(stamps) <= 0)[0])
         raise InputError(folder, f"two scans with the stamp {stamps[k]:.6f} s")
+    check_scan_period(folder, stamps, what)
     return [files[i] for i in order], stamps
+
+
+def check_scan_period(folder: Path, stamps_s: np.ndarray, what: str) -> None:
+    """InputError naming the folder when the stamps read from its file names are not a lidar's
+    (000000.bin read as 0 ns: MIN_SCAN_PERIOD_S..MAX_SCAN_PERIOD_S apart in the median)."""
+    if len(stamps_s) > 1:
+        spacing = float(np.median(np.diff(stamps_s)))
+        if not MIN_SCAN_PERIOD_S <= spacing <= MAX_SCAN_PERIOD_S:
+            raise InputError(folder, f"the file names read as stamps {spacing:.3g} s apart (a "
+                                     f"lidar scans every {MIN_SCAN_PERIOD_S:g}.."
+                                     f"{MAX_SCAN_PERIOD_S:g} s): are they numbered, not stamped? "
+                                     f"(expected {what})")
 
 
 def poses_at(gt_stamps_s: np.ndarray, gt_poses: np.ndarray, stamps_s: np.ndarray) -> np.ndarray:

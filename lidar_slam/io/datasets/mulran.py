@@ -36,6 +36,7 @@ from lidar_slam.errors import InputError
 from lidar_slam.io.datasets.common import (
     Carried,
     DatasetSource,
+    check_scan_period,
     load_rows,
     poses_at,
     rigid,
@@ -122,6 +123,7 @@ def open_sequence(root: Path) -> DatasetSource:
                                  "Ouster/<stamp_ns>.bin)") from None
     order = np.argsort(ns)
     files, stamps = [files[i] for i in order], ns[order] * 1e-9
+    check_scan_period(folder, stamps, "MulRan Ouster/<stamp_ns>.bin")
     sweep_s = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.1
     gt = None
     pose_file = root / "global_pose.csv"
