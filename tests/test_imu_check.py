@@ -151,6 +151,23 @@ def test_an_imu_too_short_for_either_end_is_said_unused(walk, tmp_path, caplog):
     assert summary["ate_rmse_m"] == pytest.approx(walk[1]["ate_rmse_m"], rel=1e-6)
 
 
+def test_one_glitch_in_a_longer_walk_leaves_out_the_imu_over_its_window_only(
+        handheld_walk, tmp_path, caplog):
+    """One sample of 1000 m/s^2 in 20 s: one window of 18, the disagreement over all of them
+    small (60 s: 1.1, ATE 3.4 m against 0.014 m). Its window's factors are left out in one line,
+    the rest of the IMU kept."""
+    data = make_case(handheld_walk, tmp_path / "spike", "accspike")
+    with caplog.at_level(logging.WARNING):
+        summary = run(data, tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    out = lines_with(said, "left out of the final solve")
+    assert len(out) == 1 and "a glitch in ax, ay, az" in out[0], said
+    imu = summary["imu"]
+    assert len(imu["acceleration_glitches_s"]) == 1 and imu["factors"] > 20
+    assert imu["acceleration_disagreement"] < 0.5
+    assert summary["ate_rmse_m"] < 0.05
+
+
 def test_every_case_of_the_table_is_a_change_of_the_simulated_file():
     rows = np.c_[np.arange(10) * 0.005, np.tile([0.1, 0.2, 0.3, 0.0, 0.0, 9.81], (10, 1))]
     assert corrupt(rows, "ns")[0][1, 0] == 5e6 and corrupt(rows, "ns")[1] == "%d"
@@ -169,7 +186,8 @@ def test_every_case_of_the_table_is_a_change_of_the_simulated_file():
 def test_the_accelerometer_check_tells_an_imu_that_explains_the_motion_from_one_that_does_not():
     """A sensor swinging on a tilted circle for 12 s, its IMU the truth: the disagreement is
     ~0; the accelerometer's sign flipped ~4 (the error is twice the motion), its x and y
-    swapped ~1 or more; standing still or too short: no verdict."""
+    swapped ~1 or more; one sample of 1000 m/s^2 a glitch of its window alone; standing still
+    or too short: no verdict."""
     from lidar_slam.geometry import make_pose, matrix_from_rotvec
     from lidar_slam.imu import ImuStream
     from lidar_slam.io.imu_gnss import ImuSamples
@@ -191,10 +209,15 @@ def test_the_accelerometer_check_tells_an_imu_that_explains_the_motion_from_one_
         stream = ImuStream(ImuSamples(times, np.zeros((len(times), 3)), accel_mps2, "imu.csv"))
         return acceleration_disagreement(stream, frames, T, np.eye(4))
 
-    value, windows = disagreement(f)
-    assert value < 0.01 and windows == 10
-    assert disagreement(-f)[0] == pytest.approx(4.0, rel=0.1)
-    assert disagreement(f[:, [1, 0, 2]])[0] > 1.0
+    right = disagreement(f)
+    assert right.disagreement < 0.01 and right.windows == 10 and not right.glitches
+    flipped = disagreement(-f)
+    assert flipped.disagreement == pytest.approx(4.0, rel=0.1) and not flipped.glitches
+    assert disagreement(f[:, [1, 0, 2]]).disagreement > 1.0
+    spiked = f.copy()
+    spiked[1200, 2] = 1000.0  # at 6 s: one window's centre
+    glitch = disagreement(spiked)
+    assert glitch.glitches == ((5.0, 7.0),) and glitch.disagreement < 0.01
     still = np.tile(np.eye(4), (len(frames), 1, 1))
     assert disagreement(np.tile([0.0, 0.0, 9.81], (len(ts), 1)), T=still) is None
     assert disagreement(f[:1000], times=ts[:1000]) is None  # 5 s: 3 windows

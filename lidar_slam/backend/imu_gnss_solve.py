@@ -174,16 +174,25 @@ def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[in
     axes or a sample wrong), with one warning."""
     stream = ImuStream(imu)
     check = imu_check.acceleration_disagreement(stream, tr.frame_stamps_s, tr.frame_odom, C)
-    accel = {} if check is None else {"acceleration_disagreement": round(check[0], 4),
-                                      "acceleration_windows": check[1]}
-    if check is not None and check[0] > imu_check.MAX_ACCEL_DISAGREEMENT:
+    accel = {} if check is None else {"acceleration_disagreement": round(check.disagreement, 4),
+                                      "acceleration_windows": check.windows}
+    if check is not None and check.disagreement > imu_check.MAX_ACCEL_DISAGREEMENT:
         why = (f"left out of the final solve (its poses are lidar-only): its accelerations "
-               f"differ from the lidar odometry's {check[0]:.3g}x as much as those vary, over "
-               f"{check[1]} windows of {2 * imu_check.ACCEL_WINDOW_S:g} s (ax, ay, az with a "
-               f"wrong sign, axes or unit, or a glitch?)")
+               f"differ from the lidar odometry's {check.disagreement:.3g}x as much as those "
+               f"vary, over {check.windows} windows of {2 * imu_check.ACCEL_WINDOW_S:g} s (ax, "
+               f"ay, az with a wrong sign, axes or unit, or a glitch?)")
         log.warning("%s: IMU %s", imu.source, why)
         return [], None, {"factors": 0, "reason": why, **accel}
-    links = _imu_links(stream, cfg, tr.kf_stamps_s, keys)
+    glitches = () if check is None else check.glitches
+    if glitches:
+        spans = ", ".join(f"{a:.1f}..{b:.1f} s" for a, b in glitches[:5])
+        log.warning("%s: IMU factors over %s left out of the final solve: its accelerations "
+                    "contradict the lidar odometry's there alone (a glitch in ax, ay, az?)",
+                    imu.source, spans + (" ..." if len(glitches) > 5 else ""))
+        accel["acceleration_glitches_s"] = [[round(a, 3), round(b, 3)] for a, b in glitches]
+    links = [ln for ln in _imu_links(stream, cfg, tr.kf_stamps_s, keys)
+             if not any(tr.kf_stamps_s[ln.i] < b and tr.kf_stamps_s[ln.j] > a
+                        for a, b in glitches)]
     span = sum(ln.pim.deltaTij() for ln in links)
     if span < MIN_IMU_SPAN_S:
         return [], None, {"factors": 0, "reason": f"IMU covers {span:.2f} s between keyframes "
