@@ -392,3 +392,49 @@ def test_rosbag_containers_give_identical_runs(rosbags_dir, tmp_path):
         summary = json.loads((out / "summary.json").read_text())  # the topic picked, reported
         assert (summary["input_kind"], summary["topic"]) == ("rosbag", TOPIC)
     assert all(o == outs[0] for o in outs)
+
+
+def test_the_imu_mounting_comes_from_the_bags_own_tf_static(rosbags_dir, tmp_path):
+    """The Ouster driver publishes os1_sensor -> os1_lidar (180 deg about z, 36.18 mm up) and
+    os1_sensor -> os1_imu (6.253, -11.775, 7.645 mm: the OS1 datasheet's IMU origin); its clouds
+    say os1_lidar, its Imu messages os1_imu. The chain gives T_lidar_imu, used when the config
+    gives none. Its clock offset still cannot be found from 0.18 s: the IMU is left out, said."""
+    import json
+    import subprocess
+    import sys
+
+    from lidar_slam.io.rosbag.tf import imu_mounting
+
+    path = rosbags_dir / "ouster_os1_64_points_ros1_profile.mcap"
+    T, where = imu_mounting(path, "/os1_cloud_node/points", None)
+    assert where == "/tf_static os1_imu -> os1_lidar"
+    expected = np.eye(4)
+    expected[:3, :3] = np.diag([-1.0, -1.0, 1.0])
+    expected[:3, 3] = [-0.006253, 0.011775, 0.007645 - 0.03618]
+    np.testing.assert_allclose(T, expected, atol=1e-12)
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "run", str(path), "--out",
+                           str(tmp_path / "o"), "--no-loops"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    imu = json.loads((tmp_path / "o" / "summary.json").read_text())["imu"]
+    assert imu["T_lidar_imu_from"] == ("the input's own calibration "
+                                       "(/tf_static os1_imu -> os1_lidar)")
+    assert imu["used"] is False and imu["reason"].startswith("its clock offset cannot be found")
+
+
+def test_tf_chains_through_the_common_root_and_not_across_trees():
+    from lidar_slam.geometry import make_pose, matrix_from_rotvec
+    from lidar_slam.io.rosbag.tf import between
+
+    def yaw(rad):
+        return matrix_from_rotvec(np.array([0.0, 0.0, rad]))
+
+    T_base_lidar = make_pose(yaw(np.pi / 2), np.array([1.0, 0.0, 2.0]))
+    T_base_mount = make_pose(np.eye(3), np.array([0.0, 1.0, 0.0]))
+    T_mount_imu = make_pose(yaw(-np.pi / 2), np.array([0.5, 0.0, 0.0]))
+    tree = {"lidar": ("base", T_base_lidar), "mount": ("base", T_base_mount),
+            "imu": ("mount", T_mount_imu), "cam": ("other_root", np.eye(4))}
+    got = between(tree, "lidar", "imu")
+    np.testing.assert_allclose(got, np.linalg.inv(T_base_lidar) @ T_base_mount @ T_mount_imu,
+                               atol=1e-12)
+    assert between(tree, "lidar", "cam") is None
+    np.testing.assert_array_equal(between(tree, "imu", "imu"), np.eye(4))

@@ -83,6 +83,14 @@ class ImuGnssStreams:
         """The input's "imu" or "gnss" stream as read, or (None, why not)."""
         raise NotImplementedError
 
+    def own_mounting(self, imu_topic: str | None) -> tuple[np.ndarray | None, str]:
+        """T_lidar_imu (4x4) the input's own calibration gives and from where (summary.json),
+        or (None, why not): a dataset's or a pcap's (sensor_streams); a bag's /tf_static."""
+        carried = self.sensor_streams
+        if carried is None or carried.T_lidar_imu is None:
+            return None, "the input gives none"
+        return carried.T_lidar_imu, getattr(self, "kind", "input")
+
     def lenient(self, what: str, topic: str | None) -> bool:
         """Whether a stream that does not overlap the scans is left out (a warning) instead of
         stopping the run: one the user did not name (see on_scan_clock)."""

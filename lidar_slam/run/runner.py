@@ -180,17 +180,18 @@ def _load_inertial(source, cfg, imu_topic: str | None, gnss_topic: str | None,
     return calib.resolve(cfg, source, inertial, offset_auto, mount_auto, start, count)
 
 
-def _mounting_from_input(cfg, source):
+def _mounting_from_input(cfg, source, imu_topic: str | None):
     """The config with the IMU mounting the input's own calibration gives (a public dataset's,
-    io.datasets; an Ouster pcap's metadata), when the config does not give one itself: a value
-    in the config always wins."""
-    carried = source.sensor_streams
-    if carried is None or carried.T_lidar_imu is None or \
-            "T_lidar_imu" in cfg.imu.model_fields_set:
-        return cfg
-    values = [round(float(v), 9) + 0.0 for v in carried.T_lidar_imu.ravel()]
+    io.datasets; an Ouster pcap's metadata; a bag's /tf_static), when the config does not give
+    one itself (a value in the config always wins), and from where ("" when not taken)."""
+    if not cfg.imu.enabled or "T_lidar_imu" in cfg.imu.model_fields_set:
+        return cfg, ""
+    T, where = source.own_mounting(imu_topic)
+    if T is None:
+        return cfg, ""
+    values = [round(float(v), 9) + 0.0 for v in T.ravel()]
     imu = cfg.imu.model_copy(update={"T_lidar_imu": values})
-    return cfg.model_copy(update={"imu": imu})
+    return cfg.model_copy(update={"imu": imu}), where
 
 
 @dataclass
@@ -273,11 +274,12 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction, meta=meta)
     total = scan_range(data, start, n_scans, len(source))
-    own_mounting = _mounting_from_input(cfg, source)
+    own_mounting, mounting_from = _mounting_from_input(cfg, source, imu_topic)
     resolved, inertial = _load_inertial(source, own_mounting, imu_topic, gnss_topic, start,
                                         total)
-    if own_mounting is not cfg and inertial.imu is not None:
-        inertial.summary["imu"]["T_lidar_imu_from"] = f"the input's own calibration ({source.kind})"
+    if mounting_from and "imu" in inertial.summary:
+        inertial.summary["imu"]["T_lidar_imu_from"] = (f"the input's own calibration "
+                                                       f"({mounting_from})")
     cfg = resolved
     created = not out.exists()
     identity = checkpoint.describe_run(data, start, n_scans, topic, cfg, imu_topic, gnss_topic)

@@ -154,6 +154,13 @@ class RosbagSource(ImuGnssStreams):
         reader = read_imu_topic if what == "imu" else read_gnss_topic
         return reader(self.path, topic)
 
+    def own_mounting(self, imu_topic: str | None) -> tuple[np.ndarray | None, str]:
+        """T_lidar_imu from the bag's /tf_static between the frames of its clouds and of its
+        Imu messages (io.rosbag.tf), or (None, why not)."""
+        from lidar_slam.io.rosbag.tf import imu_mounting
+
+        return imu_mounting(self.path, self.topic, imu_topic)
+
     def lenient(self, what: str, topic: str | None) -> bool:
         """A topic picked without being named that misses the scans is left out (an Ouster's
         own IMU, stamped by the sensor's clock), a named one stops the run."""
