@@ -342,3 +342,32 @@ def test_kitti_raw_without_timestamps_advises_its_own_format(tmp_path, caplog):
     source = open_source(drive)
     assert source.kind == "kitti_raw"
     assert "one date and time per scan, 2011-09-26 13:02:25.964389445" in caplog.text
+
+
+def test_boreas_kept_every_20_s_and_a_nan_point_time_still_read(tmp_path):
+    """Scans 20 s apart (a sequence thinned) are a lidar's; a NaN time is a point without one
+    (a review of the checks above: both were refused)."""
+    seq = _copy("boreas", tmp_path)
+    files = sorted((seq / "lidar").glob("*.bin"))
+    t0 = int(files[0].stem)
+    for k, f in enumerate(files):
+        f.rename(f.with_name(f"{t0 + k * 20_000_000}.bin"))
+    first = sorted((seq / "lidar").glob("*.bin"))[0]
+    data = np.fromfile(first, dtype=np.float32).reshape(-1, 6)
+    data[0, 5] = np.nan
+    data.tofile(first)
+    source = open_source(seq)
+    assert np.allclose(np.diff(source.stamps), 20.0)
+    scan = next(iter(source.scans(0, 1)))
+    assert len(scan.points) == len(data)
+
+
+def test_a_folder_whose_lidar_subfolder_is_numbered_gets_no_boreas_hint(tmp_path):
+    root = tmp_path / "recording"
+    (root / "lidar").mkdir(parents=True)
+    for i in range(2):
+        shutil.copy(sorted((ROOT / "sample_scans" / "velodyne").glob("*.bin"))[i],
+                    root / "lidar" / f"{i:06d}.bin")
+    with pytest.raises(InputError) as err:
+        open_source(root)
+    assert "Boreas" not in str(err.value) and f"{root / 'lidar'} (2 scans)" in str(err.value)

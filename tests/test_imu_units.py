@@ -82,17 +82,17 @@ def test_accelerations_with_gravity_removed_are_refused_not_taken_for_g(tmp_path
         read_imu_csv(write(tmp_path / "imu.csv", rows))
 
 
-@pytest.mark.parametrize("rate_hz,unit,scale", [(1.0, "ns", 1e9), (10.0, "ns", 1e9),
-                                                (20.0, "ns", 1e9), (1.0, "ms", 1e3),
-                                                (1.0, "s", 1.0), (1 / 30, "s", 1.0),
-                                                (50.0, "s", 1.0)])
+@pytest.mark.parametrize("rate_hz,unit,scale,t0", [
+    (1.0, "ns", 1e9, 1.7e9), (10.0, "ns", 1e9, 1.7e9), (50.0, "ns", 1e9, 1.7e9),
+    (1.0, "ms", 1e3, 1.7e9), (1.0, "ns", 1e9, 0.0), (1.0, "s", 1.0, 1.7e9),
+    (1 / 60, "s", 1.0, 1.7e9), (50.0, "s", 1.0, 1.7e9), (1.0, "s", 1.0, 0.0)])
 def test_gnss_stamps_in_ns_or_ms_are_converted_and_sparse_or_fast_fixes_left_in_s(
-        tmp_path, caplog, rate_hz, unit, scale):
-    """gnss.csv in ns was taken as s (1e9 s apart: no overlap with the scans). A fix every 30 s
-    and a 50 Hz receiver in s fit no other unit better: left as read, not refused."""
+        tmp_path, caplog, rate_hz, unit, scale, t0):
+    """gnss.csv in ns was taken as s (1e9 s apart: no overlap with the scans). A fix a minute
+    in s, a 50 Hz receiver in s or in ns, stamps from 0: each read in its own unit."""
     from lidar_slam.io.imu_gnss import read_gnss_csv
 
-    t = 1_700_000_000.0 + np.arange(20) / rate_hz
+    t = t0 + np.arange(20) / rate_hz
     rows = np.c_[np.round(t * scale) if scale != 1.0 else t, np.full(20, 49.0),
                  np.full(20, 8.4), np.full(20, 110.0), np.ones(20), np.full(20, 2.0)]
     path = tmp_path / "gnss.csv"

@@ -6,7 +6,8 @@ in another unit is converted with one warning saying what was assumed, or refuse
   ms, us and ns (the plausible rates of two units are 1000x apart and the window is 500x wide:
   at most one unit fits). Whether the converted stamps are on the scans' clock is checked
   after (io.imu_gnss.check_overlap).
-  gnss.csv's the same way, from a receiver's rates (GNSS_RATES_HZ).
+  gnss.csv's fixes may come milliseconds or hours apart: their unit is told by spacing and size
+  together (gnss_stamps_in_s).
 - Specific force: its median norm is ~9.81 m/s^2 on any recording not in free fall, ~1 in g
   (and then seldom far below 1: gravity dominates). Gravity removed (a median norm of 0..2
   m/s^2 that drops to ~0 at every pause) or anything else is refused (io.imu_gnss).
@@ -27,9 +28,11 @@ from lidar_slam.errors import InputError
 log = logging.getLogger(__name__)
 
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 5000.0  # an IMU's sample rate, in any unit of its stamps
-# A GNSS receiver's fix rate, 1000x wide (one unit fits): a fix every 40 s to 25 Hz. gnss.csv
-# stamps that fit no unit stay as read (a 50 Hz receiver in s): the overlap check judges them.
-GNSS_RATES_HZ = (0.025, 25.0)
+# gnss.csv stamps (gnss_stamps_in_s): a receiver's fixes come 1 ms to a day apart; stamps in s
+# stay below 1e11 (year 5000); epoch seconds lie in 1e8..1e10 (1973..2286).
+GNSS_SPACING_S = (1e-3, 86400.0)
+GNSS_MAX_STAMP_S = 1e11
+EPOCH_S = (1e8, 1e10)
 STAMP_UNITS = ((1.0, "s"), (1e-3, "ms"), (1e-6, "us"), (1e-9, "ns"))
 STANDARD_GRAVITY_MPS2 = 9.80665  # 1 g
 G_RANGE = (0.5, 2.0)  # median norm of the specific force of a file in g (~1)
@@ -60,20 +63,35 @@ def stamp_scale(stamps: np.ndarray, source: str | Path,
 
 
 def gnss_stamps_in_s(rows: np.ndarray, source: str | Path) -> tuple[np.ndarray, dict[str, str]]:
-    """gnss.csv rows with stamps in s (told as the IMU's, from a GNSS receiver's rates), and
-    {"stamps": unit} when they were in another unit."""
+    """gnss.csv rows with stamps in s, and {"stamps": unit} when they were in ms, us or ns.
+    A receiver's fixes come every few ms to hours, so the spacing alone does not tell the
+    unit: stamps whose spacing (GNSS_SPACING_S) and size (below GNSS_MAX_STAMP_S) both fit
+    seconds stay as read; otherwise the unit that fits both, the one whose stamps look like
+    epoch seconds (EPOCH_S) first, then the one whose fixes come closest to 1 Hz."""
     rows = np.asarray(rows, dtype=np.float64)
-    if len(rows) < 2:
+    stamps = rows[:, 0][np.isfinite(rows[:, 0])] if len(rows) else rows[:, :0]
+    steps = np.diff(stamps)
+    steps = steps[steps > 0]
+    if len(stamps) < 2 or not len(steps):
         return rows, {}
-    try:
-        scale = stamp_scale(rows[:, 0], source, GNSS_RATES_HZ, "a GNSS receiver")
-    except InputError:
+    spacing, size = float(np.median(steps)), float(np.median(np.abs(stamps)))
+
+    def fits(scale: float) -> bool:
+        return (GNSS_SPACING_S[0] <= spacing * scale <= GNSS_SPACING_S[1]
+                and size * scale < GNSS_MAX_STAMP_S)
+
+    if fits(1.0):
         return rows, {}
-    if scale == 1.0:
-        return rows, {}
+    units = [(scale, unit) for scale, unit in STAMP_UNITS[1:] if fits(scale)]
+    if not units:
+        return rows, {}  # the overlap with the scans' clock judges them
+    scale, unit = min(units, key=lambda su: (not EPOCH_S[0] <= size * su[0] <= EPOCH_S[1],
+                                             abs(np.log10(spacing * su[0]))))
+    log.warning("%s: stamps read as %s (median spacing %.6g: a fix every %.3g s in %s); "
+                "converted to s", source, unit, spacing, spacing * scale, unit)
     out = rows.copy()
     out[:, 0] *= scale
-    return out, {"stamps": dict((s, u) for s, u in STAMP_UNITS)[scale]}
+    return out, {"stamps": unit}
 
 
 def accel_scale(accel: np.ndarray, source: str | Path) -> float:

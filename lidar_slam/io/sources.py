@@ -120,8 +120,7 @@ def _stamp_ns(stamp_s: float, known: bool) -> int | None:
 LAYOUT_HINTS = (("ms25.csv", "an NCLT session? its scans go in velodyne_sync/"),
                 ("gps.csv", "an NCLT session? its scans go in velodyne_sync/"),
                 ("global_pose.csv", "a MulRan sequence? its scans go in sensor_data/Ouster/"),
-                ("lidar", "a Boreas sequence? it needs applanix/lidar_poses.csv or calib/ beside "
-                          "lidar/"))
+                ("lidar/", "a Boreas sequence? it needs applanix/ or calib/ beside lidar/"))
 
 
 def _subfolders_with_scans(root: Path) -> list[tuple[str, int]]:
@@ -137,10 +136,17 @@ def _subfolders_with_scans(root: Path) -> list[tuple[str, int]]:
     return out
 
 
+def _boreas_names(folder: Path) -> bool:
+    """Whether a folder's .bin scans are named as Boreas's: 16-digit microsecond stamps."""
+    names = [p.stem for p in folder.glob("*.bin")][:20]
+    return bool(names) and all(n.isdigit() and len(n) == 16 for n in names)
+
+
 def _other_layout_hint(root: Path) -> str:
     """What the folder might be instead: a public dataset whose telltale file is here, and the
     subfolders that hold scans (pass one as a folder of scans)."""
-    said = [why for name, why in LAYOUT_HINTS if (root / name).exists()]
+    said = [why for name, why in LAYOUT_HINTS if (root / name).exists()
+            and (name != "lidar/" or _boreas_names(root / "lidar"))]
     subs = _subfolders_with_scans(root)
     if subs:
         said.append("or pass a folder of scans: " + ", ".join(

@@ -90,8 +90,8 @@ def read_lidar(path: Path, stamp_s: float) -> CloudData:
         raise InputError(path, f"{size} bytes is not a multiple of 24 (Boreas lidar: float32 x, "
                                "y, z, intensity, laser, t)")
     data = np.fromfile(path, dtype=np.float32).reshape(-1, FIELDS)
-    with np.errstate(invalid="ignore"):
-        wrong = ~(np.abs(data[:, 5]) <= MAX_ABS_POINT_TIME_S)
+    with np.errstate(invalid="ignore"):  # a NaN time is a point without one (point_times)
+        wrong = np.abs(data[:, 5]) > MAX_ABS_POINT_TIME_S
     if wrong.any():  # four float32 a point (KITTI's) whose count happens to divide by 6
         raise InputError(path, f"{int(wrong.sum())} of {len(data)} points have a time beyond "
                                f"+-{MAX_ABS_POINT_TIME_S:g} s of the stamp: not Boreas's six "
