@@ -86,6 +86,7 @@ MAX_ACCEL_GAP_S = 0.1  # IMU samples further apart inside a window: the window i
 # = 0.2 m/s^2 of gravity into its accelerations (a car at a steady 2 m/s, 60 s: the check said
 # 19.6 for a right IMU before this floor). The bank's sequences and the walks vary by 0.33-1.4.
 MIN_ACCEL_VARIATION_MPS2 = 0.2
+CHUNK_SAMPLES = 50_000  # IMU samples turned into the world at a time
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
@@ -297,8 +298,12 @@ def acceleration_disagreement(stream: ImuStream, stamps_s: np.ndarray, T_world_l
     i0, i1 = np.searchsorted(stream.t, [lo - h, hi + h])
     ts = stream.t[max(i0 - 1, 0):i1 + 1]
     f = np.asarray(stream.samples.accel_mps2[max(i0 - 1, 0):i1 + 1], dtype=float)
-    R = Slerp(t, Rotation.from_matrix(T[:, :3, :3]))(np.clip(ts, t[0], t[-1])).as_matrix()
-    f_world = np.einsum("nij,jk,nk->ni", R, T_lidar_imu[:3, :3], f)
+    slerp = Slerp(t, Rotation.from_matrix(T[:, :3, :3]))
+    f_imu_in_lidar = f @ T_lidar_imu[:3, :3].T
+    f_world = np.empty_like(f)
+    for a in range(0, len(ts), CHUNK_SAMPLES):  # an hour at 200 Hz: 52 MB of matrices at once
+        b = a + CHUNK_SAMPLES
+        f_world[a:b] = slerp(np.clip(ts[a:b], t[0], t[-1])).apply(f_imu_in_lidar[a:b])
     a_imu, used = [], []
     for k, c in enumerate(centres):
         j0, j1 = np.searchsorted(ts, [c - h, c + h])
