@@ -190,10 +190,11 @@ def test_a_config_mounting_wins_over_the_metadata(sim_ouster, tmp_path):
     overlay = tmp_path / "imu.yaml"
     overlay.write_text("imu:\n  T_lidar_imu: [0.1, 0.0, 0.0, 0.0, 0.0, 0.0]\n")
     source = open_source(sim_ouster.pcap)
-    given = _mounting_from_input(load_config(overlay), source).imu.T_lidar_imu
-    assert given == [0.1, 0, 0, 0, 0, 0]
-    mounted = _mounting_from_input(load_config(), source).imu.T_lidar_imu_matrix()
-    assert np.allclose(mounted[:3, 3], IMU_LEVER_M)
+    given, where = _mounting_from_input(load_config(overlay), source, None)
+    assert given.imu.T_lidar_imu == [0.1, 0, 0, 0, 0, 0] and where == ""
+    mounted, where = _mounting_from_input(load_config(), source, None)
+    assert np.allclose(mounted.imu.T_lidar_imu_matrix()[:3, 3], IMU_LEVER_M)
+    assert where == "ouster_pcap"
 
 
 def test_ouster_metadata_is_found_beside_or_given_or_one_line(sim_ouster, tmp_path):
