@@ -3,6 +3,7 @@ and NavSatFix bag topics, the imu:/gnss: config sections, and every kind of bad 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import re
@@ -90,17 +91,19 @@ def test_imu_samples_no_imu_could_read_are_dropped_as_invalid(tmp_path, caplog):
     imu = read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows))
     assert len(imu) == 98 and imu.dropped["invalid"] == 2
     assert "dropped 2 of 100 IMU samples (2 beyond 10000 rad/s or 10000 m/s^2" in caplog.text
-    # 16 g is a real accelerometer's range: kept in a stream that moves as much (a legged
-    # robot's impacts: jumps of a few m/s^2 from sample to sample are common there), dropped
-    # as a glitch where it stands alone in a quiet stream (50x the jumps 99 % of samples make)
+    # 16 g is a real accelerometer's range: kept in a stream that moves (a legged robot's
+    # impacts: jumps of a few m/s^2 from sample to sample are common there); 300 m/s^2 alone in
+    # a quiet stream is a glitch (50x the jumps 99 % of samples make, and past 150 m/s^2)
     shaken = _imu_rows()
     shaken[:, 4:7] += np.random.default_rng(0).normal(0.0, 1.5, (len(shaken), 3))
     shaken[40, 4] = 156.0
     assert len(read_imu_csv(_write(tmp_path / "imu2.csv", IMU_HEADER, shaken.tolist()))) == 100
     rows = _imu_rows().tolist()
-    rows[40][4] = 156.0
+    rows[40][4] = 300.0  # past a consumer IMU's +-16 g, alone in a quiet stream
     quiet = read_imu_csv(_write(tmp_path / "imu3.csv", IMU_HEADER, rows))
     assert len(quiet) == 99 and "1 glitches (50x further from their neighbours" in caplog.text
+    rows[40][4] = 60.0  # a 6 g foot strike after standing still: kept
+    assert len(read_imu_csv(_write(tmp_path / "imu4.csv", IMU_HEADER, rows))) == 100
 
 
 def test_duplicated_imu_stamps_are_dropped_and_counted(tmp_path, caplog):
@@ -443,3 +446,67 @@ def test_the_terminal_summary_shows_the_fixes_used_rejected_and_unused_and_units
                            "imu": {"used": True, "read_as": {"stamps": "ns"}, "samples": 10}})
     assert "fixes_used=40, fixes_rejected=2, fixes_unused=5" in table
     assert "read_as={'stamps': 'ns'}" in table
+
+
+def _tf(parent: str, child: str, xyz, quat):
+    v3 = ROS2.types["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2])
+    q = ROS2.types["geometry_msgs/msg/Quaternion"](x=quat[0], y=quat[1], z=quat[2], w=quat[3])
+    header = dataclasses.replace(_header(0), frame_id=parent)
+    return ROS2.types["geometry_msgs/msg/TransformStamped"](
+        header=header, child_frame_id=child,
+        transform=ROS2.types["geometry_msgs/msg/Transform"](translation=v3, rotation=q))
+
+
+@pytest.mark.parametrize("imu_tfs,expect", [
+    ([("base", "imu", (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))], "ok"),
+    ([("base", "imu", (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 0.0))], "is not a rigid transform"),
+    ([("base", "imu", (np.nan, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))], "is not a rigid transform"),
+    ([("base", "imu", (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0)),
+      ("base", "imu", (0.0, 5.0, 0.0), (0.0, 0.0, 0.0, 1.0))], "two different transforms")])
+def test_a_bags_tf_static_gives_the_mounting_or_says_what_it_left_out(tmp_path, caplog,
+                                                                      imu_tfs, expect):
+    """A zero or NaN quaternion in /tf_static ran into "internal error" (a NaN mounting); a
+    frame given two transforms took the last one silently (a review): both left out, said."""
+    from lidar_slam.io.rosbag.tf import imu_mounting
+
+    t0 = 1_700_000_000 * 10**9
+    cloud = _cloud(t0, 0)
+    cloud = dataclasses.replace(cloud, header=dataclasses.replace(cloud.header, frame_id="lidar"))
+    lidar_tf = _tf("base", "lidar", (1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0))  # turned 180 about z
+    msgs = [ROS2.types["tf2_msgs/msg/TFMessage"](transforms=[lidar_tf, *[_tf(*a) for a in t]])
+            for t in [imu_tfs[:1], imu_tfs[1:]] if t]
+    path = _bag(tmp_path / "b", {"/points": ("sensor_msgs/msg/PointCloud2", [cloud]),
+                                 "/imu": ("sensor_msgs/msg/Imu", [_imu_msg(t0, 0.0)]),
+                                 "/tf_static": ("tf2_msgs/msg/TFMessage", msgs)})
+    T, why = imu_mounting(path, "/points", None)
+    if expect == "ok":
+        assert why == "/tf_static imu -> lidar"
+        np.testing.assert_allclose(T[:3, 3], [1.0, -1.0, 0.0], atol=1e-12)  # Rz(180) (-1, 1, 0)
+        np.testing.assert_allclose(T[:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-12)
+    else:
+        assert T is None and expect in why and "left out" in why
+        assert "mounting is not taken from /tf_static" in caplog.text
+
+
+@pytest.mark.parametrize("scale,every_s,scans_s,unit", [(1e3, 1.0, 20.0, "ms"),
+                                                         (1e3, 0.1, 20.0, "ms"),
+                                                         (1.0, 60.0, 600.0, None),
+                                                         (1.0, 1.0, 20.0, None)])
+def test_gnss_stamps_counted_from_zero_in_ms_are_told_by_the_scans_clock(tmp_path, caplog,
+                                                                         scale, every_s,
+                                                                         scans_s, unit):
+    """In ms from 0 at 1 Hz they look like a fix every 1000 s, which size and spacing cannot
+    tell from a sparse receiver in s: the GNSS was dropped ("1 usable fixes"). Read so that
+    the most fixes fall within the scans' span; a fix a minute in s stays s."""
+    n = int(scans_s / every_s) + 1
+    rows = _gnss_rows(n)
+    rows[:, 0] = np.round(np.arange(n) * every_s * scale, 6)
+    _write(tmp_path / "gnss.csv", GNSS_HEADER, rows.tolist())
+    got = load_inertial(tmp_path, np.arange(int(scans_s * 10) + 1) * 0.1, imu_enabled=False,
+                        gnss_enabled=True)
+    np.testing.assert_allclose(got.gnss.stamp_s, np.arange(n) * every_s, atol=1e-9)
+    if unit is None:
+        assert "read_as" not in got.summary["gnss"] and "stamps read as" not in caplog.text
+    else:
+        assert got.summary["gnss"]["read_as"] == {"stamps": unit}
+        assert caplog.text.count("stamps read as ms") == 1

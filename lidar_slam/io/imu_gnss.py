@@ -38,13 +38,18 @@ MIN_MEDIAN_SPECIFIC_FORCE, MAX_MEDIAN_SPECIFIC_FORCE = 5.0, 20.0
 MAX_ABS_RATE = 1e4
 MAX_ABS_SPECIFIC_FORCE = 1e4
 # A glitch within range: a sample GLITCH_FACTOR x further from the median of its 5 neighbours
-# (itself included) than 99 % of the stream's samples are, and at least GLITCH_FACTOR x the
-# floor (specific force m/s^2, rate rad/s): a body's motion through an IMU's filters does not
-# jump so in one sample. The bank's 16 simulated IMUs: at most 10.5x (accelerometer) and 5.7x
-# (gyro); one sample of 1000 m/s^2: 10,000x (the final solve followed it to 3.4 m on a 60 s
-# walk). Dropped and counted as the values out of range are.
+# (itself included) than 99 % of the samples within GLITCH_WINDOW_S of it are, and at least
+# GLITCH_FACTOR x the floor: a body's motion through an IMU's filters does not jump so in one
+# sample. Local, so that a robot standing still for minutes keeps the first foot strikes of its
+# trot (a whole file's percentile dropped them), and floors that hold in both gyro units (the
+# deg/s verdict comes later, lidar_slam.frontend.imu_check): 3 m/s^2 (a jump of 150 m/s^2, 15 g:
+# the whole range of most consumer IMUs, so a 6 g foot strike after minutes of standing still is
+# kept), 0.1 rad/s = 5.73 deg/s.
+# The bank's 16 simulated IMUs drop nothing; one sample of 1000 m/s^2 is 10,000x (the final
+# solve followed it to 3.4 m on a 60 s walk). Dropped and counted as the values out of range.
 GLITCH_FACTOR = 50.0
-GLITCH_FLOOR = (1.0, 0.1)  # specific force (m/s^2), rate (rad/s)
+GLITCH_WINDOW_S = 1.0
+GLITCH_FLOOR = (3.0, 0.1 * 180.0 / np.pi)  # specific force (m/s^2), rate (rad/s or deg/s)
 
 
 @dataclass(frozen=True)
@@ -183,17 +188,20 @@ def read_imu_csv(path: str | Path) -> ImuSamples:
 
 def _glitches(rows: np.ndarray, usable: np.ndarray) -> np.ndarray:
     """Rows (of those usable) whose specific force or rate is a glitch (GLITCH_FACTOR)."""
-    from scipy.ndimage import median_filter
+    from scipy.ndimage import median_filter, percentile_filter
 
     out = np.zeros(len(rows), dtype=bool)
     index = np.flatnonzero(usable)
     if len(index) < 5:
         return out
+    steps = np.diff(rows[index, 0])
+    period = float(np.median(steps[steps > 0])) if (steps > 0).any() else 0.0
+    half = int(min(GLITCH_WINDOW_S / period, len(index))) if period > 0 else len(index)
     for cols, floor in ((slice(4, 7), GLITCH_FLOOR[0]), (slice(1, 4), GLITCH_FLOOR[1])):
         x = rows[index, cols]
         jump = np.linalg.norm(x - median_filter(x, size=(5, 1), mode="nearest"), axis=1)
-        limit = GLITCH_FACTOR * max(float(np.percentile(jump, 99)), floor)
-        out[index[jump > limit]] = True
+        local = percentile_filter(jump, 99, size=2 * half + 1, mode="nearest")
+        out[index[jump > GLITCH_FACTOR * np.maximum(local, floor)]] = True
     return out
 
 
@@ -207,7 +215,7 @@ def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] 
     bad = {"non-finite": ~finite,
            f"beyond {MAX_ABS_RATE:g} rad/s or {MAX_ABS_SPECIFIC_FORCE:g} m/s^2": ~in_range,
            f"glitches ({GLITCH_FACTOR:g}x further from their neighbours than 99 % of the "
-           f"samples)": _glitches(rows, finite & in_range)}
+           f"samples within {GLITCH_WINDOW_S:g} s)": _glitches(rows, finite & in_range)}
     kept, counts = _clean(Path(source), rows, bad, "IMU samples")
     dt = np.diff(kept[:, 0])
     gaps = int((dt > GAP_PERIODS * np.median(dt)).sum())

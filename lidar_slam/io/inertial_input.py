@@ -10,6 +10,7 @@ come from is the source's business, in one of three bases here:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,7 @@ from lidar_slam.io.imu_gnss import (
     read_imu_csv,
     stream_info,
 )
+from lidar_slam.io.imu_units import STAMP_UNITS
 
 log = logging.getLogger(__name__)
 
@@ -160,6 +162,33 @@ class CarriedStreams(ImuGnssStreams):
         return True
 
 
+def _gnss_on_the_scans_unit(fixes, offset_s: float, scan_stamps: np.ndarray):
+    """GNSS fixes whose stamps read in ms, us or ns put at least twice as many fixes within the
+    scans' span as read in s (and at least two), converted to that unit with one warning:
+    stamps counted from 0 in ms look like a fix every 1000 s, which their size alone cannot
+    tell from a sparse receiver (io.imu_units.gnss_stamps_in_s). Of the units that put at least
+    half the most fixes there, the one whose fixes span most of the scans' span."""
+    if fixes.read_as:
+        return fixes  # converted on reading already
+    first, last = float(scan_stamps[0]), float(scan_stamps[-1])
+    options = []
+    for scale, unit in STAMP_UNITS:
+        t = fixes.stamp_s * scale + offset_s
+        inside = int(((t >= first) & (t <= last)).sum())
+        covered = max(0.0, min(last, float(t[-1])) - max(first, float(t[0]))) / (last - first)
+        options.append((inside, covered, scale, unit))
+    most = max(o[0] for o in options)
+    best = max((o for o in options if o[0] >= max(2, 0.5 * most)), key=lambda o: o[1],
+               default=options[0])  # the first of equals: s before ms, us, ns
+    if best[2] == 1.0 or best[0] < 2 * options[0][0]:
+        return fixes
+    log.warning("%s: stamps read as %s: %d fixes fall within the scans' %.6g..%.6g s so, %d "
+                "read as s; converted to s", fixes.source, best[3], best[0], first, last,
+                options[0][0])
+    return dataclasses.replace(fixes, stamp_s=fixes.stamp_s * best[2],
+                               read_as={"stamps": best[3]})
+
+
 def on_scan_clock(stream, what: str, offset_s: float, scan_stamps: np.ndarray | None,
                   lenient: bool):
     """The stream with offset_s added to its stamps, checked against the scan stamps (see
@@ -167,6 +196,8 @@ def on_scan_clock(stream, what: str, offset_s: float, scan_stamps: np.ndarray | 
     stream that does not overlap the scans is not used (a warning, the reason in the summary)
     instead of stopping the run (a topic picked without being asked for, e.g. an Ouster's own
     IMU stamped by the sensor's clock, must not stop a run that can go on without it)."""
+    if what == "gnss" and scan_stamps is not None and len(scan_stamps) > 1:
+        stream = _gnss_on_the_scans_unit(stream, offset_s, scan_stamps)
     stream = stream.shifted(offset_s) if offset_s else stream
     label = "IMU" if what == "imu" else "GNSS"
     if scan_stamps is not None and len(scan_stamps):

@@ -16,6 +16,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from lidar_slam.errors import EXIT_INTERRUPTED, LidarSlamError, RunFailed
 from lidar_slam.run.outdir import (
     RUN_OUTPUTS,
@@ -187,7 +189,7 @@ def _mounting_from_input(cfg, source, imu_topic: str | None):
     if not cfg.imu.enabled or "T_lidar_imu" in cfg.imu.model_fields_set:
         return cfg, ""
     T, where = source.own_mounting(imu_topic)
-    if T is None:
+    if T is None or not np.isfinite(T).all():
         return cfg, ""
     values = [round(float(v), 9) + 0.0 for v in T.ravel()]
     imu = cfg.imu.model_copy(update={"T_lidar_imu": values})

@@ -9,6 +9,7 @@ a robot's motion, not its calibration."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -19,17 +20,23 @@ from lidar_slam.io.rosbag.bag import open_bag, topic_messages
 from lidar_slam.io.rosbag.reader import BAG_ERRORS, LEAKS
 from lidar_slam.io.rosbag.topics import pick_typed_topic
 
+log = logging.getLogger(__name__)
+
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 STATIC_TOPICS = ("/tf_static", "tf_static")
+UNIT_QUATERNION_TOLERANCE = 1e-3  # |q| - 1: a quaternion written with 6 digits is within this
 
 
 def _frame(name: str) -> str:
     return name.strip().lstrip("/")  # ROS1 tf names may carry a leading slash
 
 
-def static_tree(bag: Any) -> dict[str, tuple[str, np.ndarray]]:
-    """{child: (parent, T_parent_child)} of every transform on the bag's /tf_static."""
+def static_tree(bag: Any) -> tuple[dict[str, tuple[str, np.ndarray]], list[str]]:
+    """{child: (parent, T_parent_child)} of the transforms on the bag's /tf_static, and what
+    was left out: a transform that is not finite or whose quaternion is not a unit one, and a
+    child given two different transforms (which one holds cannot be told)."""
     tree: dict[str, tuple[str, np.ndarray]] = {}
+    left_out: dict[str, str] = {}
     topics = bag.topics()
     for topic in STATIC_TOPICS:
         if topics.get(topic, ("", 0))[0] != TF_MESSAGE:
@@ -37,10 +44,20 @@ def static_tree(bag: Any) -> dict[str, tuple[str, np.ndarray]]:
         for deserialize in topic_messages(bag, topic):
             for tf in deserialize().transforms:
                 t, q = tf.transform.translation, tf.transform.rotation
-                T = make_pose(matrix_from_quat(np.array([q.x, q.y, q.z, q.w])),
-                              np.array([t.x, t.y, t.z]))
-                tree[_frame(tf.child_frame_id)] = (_frame(tf.header.frame_id), T)
-    return tree
+                child, parent = _frame(tf.child_frame_id), _frame(tf.header.frame_id)
+                quat, trans = np.array([q.x, q.y, q.z, q.w]), np.array([t.x, t.y, t.z])
+                if not (np.isfinite(quat).all() and np.isfinite(trans).all()
+                        and abs(np.linalg.norm(quat) - 1.0) < UNIT_QUATERNION_TOLERANCE):
+                    left_out[child] = f"{parent} -> {child} is not a rigid transform"
+                    continue
+                T = make_pose(matrix_from_quat(quat), trans)
+                if child in tree and (tree[child][0] != parent
+                                      or not np.allclose(tree[child][1], T, atol=1e-9)):
+                    left_out[child] = f"{child} is given two different transforms"
+                tree[child] = (parent, T)
+    for child in left_out:
+        tree.pop(child, None)
+    return tree, list(left_out.values())
 
 
 def _to_root(tree: dict[str, tuple[str, np.ndarray]], frame: str) -> tuple[str, np.ndarray]:
@@ -91,9 +108,14 @@ def imu_mounting(path: Path, cloud_topic: str, imu_topic: str | None
                 return None, "a header without a frame_id"
             if lidar == imu:  # often a default left in both drivers' settings: not a statement
                 return None, f"clouds and Imu messages both say frame_id {lidar}"
-            T = between(static_tree(bag), lidar, imu)
+            tree, left_out = static_tree(bag)
+            T = between(tree, lidar, imu)
     except (*BAG_ERRORS, *LEAKS):
         return None, "unreadable /tf_static"  # the streams' own reading names the problem
     if T is None:
-        return None, f"no /tf_static chain from {imu} to {lidar}"
+        why = f"no /tf_static chain from {imu} to {lidar}"
+        if left_out:
+            why += f" ({'; '.join(left_out)}: left out)"
+            log.warning("%s: the IMU's mounting is not taken from /tf_static: %s", path, why)
+        return None, why
     return T, f"/tf_static {imu} -> {lidar}"
