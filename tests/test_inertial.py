@@ -510,3 +510,32 @@ def test_gnss_stamps_counted_from_zero_in_ms_are_told_by_the_scans_clock(tmp_pat
     else:
         assert got.summary["gnss"]["read_as"] == {"stamps": unit}
         assert caplog.text.count("stamps read as ms") == 1
+
+
+def test_empty_csv_fields_are_missing_values_dropped_as_nan_is(tmp_path, caplog):
+    """An empty field stopped the run ("not a number ('')") where nan was dropped."""
+    rows = [",".join(str(v) for v in r) for r in _gnss_rows(10)]
+    rows[3] = "3.0,,,,1,2"
+    (tmp_path / "gnss.csv").write_text(GNSS_HEADER + "\n".join(rows) + "\n")
+    assert len(read_gnss_csv(tmp_path / "gnss.csv")) == 9
+    assert "dropped 1 of 10 GNSS fixes (1 non-finite" in caplog.text
+    bad = rows[:]
+    bad[5] = "5.0,north,8.4,115,1,2"  # a word is still named, not an empty field before it
+    (tmp_path / "g2.csv").write_text(GNSS_HEADER + "\n".join(bad) + "\n")
+    with pytest.raises(InputError, match=r"line 7: not a number \('north'\)"):
+        read_gnss_csv(tmp_path / "g2.csv")
+
+
+def test_swapped_rate_and_acceleration_columns_are_named(tmp_path):
+    rows = _imu_rows()
+    rows[:, 1:7] = rows[:, [4, 5, 6, 1, 2, 3]]
+    with pytest.raises(InputError, match="wx,wy,wz and ax,ay,az swapped"):
+        read_imu_csv(_write(tmp_path / "imu.csv", IMU_HEADER, rows.tolist()))
+
+
+def test_gnss_in_epoch_seconds_with_scans_from_zero_is_another_clock(tmp_path):
+    """They were taken for ns counted from 0 (1.76 s): refused as another clock instead."""
+    rows = _gnss_rows(10, t0=1_764_950_400.0)
+    _write(tmp_path / "gnss.csv", GNSS_HEADER, rows.tolist())
+    with pytest.raises(InputError, match="do not overlap the scans"):
+        load_inertial(tmp_path, np.arange(100) * 0.1, imu_enabled=False, gnss_enabled=True)

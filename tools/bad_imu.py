@@ -36,6 +36,8 @@ CASES = {
     "acc90z": "accelerometer's axes turned 90 deg about z, gyro not",
     "accspike": "one accelerometer sample of 1000 m/s^2",
     "two": "two samples only",
+    "acc108": "accelerometer's scale x1.08",
+    "accdelay": "accelerometer 0.2 s behind the gyro",
 }
 HEADER = "stamp_s,wx,wy,wz,ax,ay,az"
 
@@ -76,6 +78,10 @@ def corrupt(rows: np.ndarray, case: str) -> tuple[np.ndarray, str]:
         r[len(r) // 2, 6] = 1000.0
     elif case == "two":
         r = r[:2]
+    elif case == "acc108":
+        r[:, 4:7] *= 1.08
+    elif case == "accdelay":
+        r[:, 4:7] = np.roll(rows[:, 4:7], 40, axis=0)  # 200 Hz: each row holds the one 40 back
     return r, "%.9f"
 
 

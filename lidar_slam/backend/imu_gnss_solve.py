@@ -53,6 +53,9 @@ FREE_TILT_SIGMA_RAD = 0.5
 GNSS_PRIOR_TRANS_SIGMA_M, GNSS_PRIOR_ROT_SIGMA_RAD = 100.0, 1.0
 GNSS_HUBER_K = 3.0  # whitened units: a fix within 3 sigma counts fully
 GATE_ROUNDS = 4
+# Fewer fixes than this share kept by the gate: the fixes do not follow the lidar's path (a
+# multipath jump is a few of them): said in one warning (summary.json gnss.warning).
+MIN_KEPT_SHARE = 0.5
 # LM stops when an iteration gains less than this (relative): on sim s08 without GNSS, LM creeps
 # along a flat valley (not yet understood) for 100 iterations at 1e-9, 46 at 1e-6,
 # the same poses (ATE 0.1124 m both); elsewhere it converges in 3-10 either way.
@@ -187,11 +190,20 @@ def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[in
                                       "acceleration_windows": check.windows,
                                       "acceleration_variation_mps2":
                                           round(check.variation_mps2, 4)}
+    why = None
     if check is not None and check.disagreement > imu_check.MAX_ACCEL_DISAGREEMENT:
         why = (f"left out of the final solve (its poses are lidar-only): its accelerations "
                f"differ from the lidar odometry's {check.disagreement:.3g}x as much as those "
                f"vary, over {check.windows} windows of {2 * imu_check.ACCEL_WINDOW_S:g} s (ax, "
-               f"ay, az with a wrong sign, axes or unit?)")
+               f"ay, az with a wrong sign, axes, unit or delay?)")
+    elif check is not None and abs(check.gravity_mps2 - imu_check.STANDARD_GRAVITY_MPS2) > \
+            imu_check.MAX_GRAVITY_ERROR_MPS2:
+        why = (f"left out of the final solve (its poses are lidar-only): the gravity its "
+               f"accelerations imply is {check.gravity_mps2:.2f} m/s^2, not Earth's 9.81 (ax, "
+               f"ay, az with a scale error?)")
+    if check is not None:
+        accel["acceleration_gravity_mps2"] = round(check.gravity_mps2, 4)
+    if why is not None:
         log.warning("%s: IMU %s", imu.source, why)
         return [], None, {"factors": 0, "reason": why, **accel}
     links = _imu_links(stream, cfg, tr.kf_stamps_s, keys)
@@ -486,6 +498,14 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         used, poses = gate, sol.poses  # solve again from here without the fixes gated out
         velocities = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
         sol = run(used)
+    if tied is not None and int(used.sum()) < MIN_KEPT_SHARE * len(used):
+        log.warning("GNSS: %d of %d fixes rejected by the final solve's gate: the geo-reference "
+                    "rests on the %d kept (fixes that do not follow the lidar's path: latitude "
+                    "and longitude swapped, a sign, unit or clock wrong?)", len(used) -
+                    int(used.sum()), len(used), int(used.sum()))
+        summary.setdefault("gnss", {})["warning"] = (
+            f"{len(used) - int(used.sum())} of {len(used)} fixes rejected: the geo-reference "
+            f"rests on the {int(used.sum())} kept")
     sol = sol.with_covariances()  # of the last solve only
     T_S_lidar = lidar_poses(sol)
     if sol.mount_correction is not None:  # the nodes are the IMU turned by it

@@ -109,8 +109,13 @@ def _read_table(path: Path, columns: tuple[str, ...]) -> np.ndarray:
                                        f"{','.join(columns)}")
             body = fh.read()
             lines = [ln for ln in body.splitlines() if ln.partition("#")[0].strip()]
-            rows = (np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=2)
-                    if lines else np.empty((0, len(columns))))
+            try:
+                rows = (np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=2)
+                        if lines else np.empty((0, len(columns))))
+            except ValueError:  # an empty field is a missing value, dropped as NaN is
+                lines = [",".join(f if f.strip() else "nan"
+                                  for f in ln.partition("#")[0].split(",")) for ln in lines]
+                rows = np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=2)
     except UnicodeDecodeError as exc:
         raise InputError(path, f"not a text file (byte {exc.start} is not UTF-8)") from None
     except OSError as exc:
@@ -133,6 +138,8 @@ def _first_bad_line(body: str, n_columns: int) -> str:
         if len(fields) != n_columns:
             return f"line {n}: {len(fields)} columns, expected {n_columns}"
         for value in fields:
+            if not value.strip():
+                continue  # an empty field is read as a missing value
             try:
                 float(value)
             except ValueError:
@@ -226,8 +233,13 @@ def imu_from_rows(source: str | Path, rows: np.ndarray, dropped: dict[str, int] 
     counts["gaps"] = gaps
     g_median = float(np.median(np.linalg.norm(kept[:, 4:7], axis=1)))
     if not MIN_MEDIAN_SPECIFIC_FORCE <= g_median <= MAX_MEDIAN_SPECIFIC_FORCE:
+        w_median = float(np.median(np.linalg.norm(kept[:, 1:4], axis=1)))
+        swapped = MIN_MEDIAN_SPECIFIC_FORCE <= w_median <= MAX_MEDIAN_SPECIFIC_FORCE
         raise InputError(source, f"median specific force {g_median:.3g} m/s^2 (expected about "
-                                 f"9.81 with gravity included: in g, or gravity removed?)")
+                                 f"9.81 with gravity included: " + (
+                                     f"the rate columns read {w_median:.3g}: wx,wy,wz and "
+                                     f"ax,ay,az swapped?)" if swapped
+                                     else "in g, or gravity removed?)"))
     return ImuSamples(kept[:, 0], kept[:, 1:4].copy(), kept[:, 4:7].copy(), str(source),
                       {**counts, **(dropped or {})}, dict(read_as or {}))
 

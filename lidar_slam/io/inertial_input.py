@@ -29,7 +29,7 @@ from lidar_slam.io.imu_gnss import (
     read_imu_csv,
     stream_info,
 )
-from lidar_slam.io.imu_units import STAMP_UNITS
+from lidar_slam.io.imu_units import EPOCH_S, STAMP_UNITS
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,8 @@ def _gnss_on_the_scans_unit(fixes, offset_s: float, scan_stamps: np.ndarray):
     half the most fixes there, the one whose fixes span most of the scans' span."""
     if fixes.read_as:
         return fixes  # converted on reading already
+    if EPOCH_S[0] <= float(np.median(np.abs(fixes.stamp_s))) <= EPOCH_S[1]:
+        return fixes  # epoch seconds: another clock than the scans', which the overlap check says
     first, last = float(scan_stamps[0]), float(scan_stamps[-1])
     options = []
     for scale, unit in STAMP_UNITS:

@@ -148,7 +148,7 @@ def _other_layout_hint(root: Path) -> str:
     said = [why for name, why in LAYOUT_HINTS if (root / name).exists()
             and (name != "lidar/" or _boreas_names(root / "lidar"))]
     subs = _subfolders_with_scans(root)
-    if subs:
+    if subs and not said:  # a dataset's scan folder read as plain scans misreads them
         said.append("or pass a folder of scans: " + ", ".join(
             f"{root / name} ({n} scans)" for name, n in subs[:3]))
     return "; ".join(dict.fromkeys(said)) or "or pass a folder of scans"
