@@ -19,7 +19,7 @@ import numpy as np
 
 from lidar_slam.config import ImuConfig
 from lidar_slam.geometry import matrix_from_rotvec
-from lidar_slam.io.imu_gnss import ImuSamples
+from lidar_slam.io.imu_gnss import GAP_PERIODS, ImuSamples
 
 GRAVITY_MPS2 = 9.81
 # Covariance of the integration of velocity into position (m^2/s^2 * s), gtsam's own knob for
@@ -65,6 +65,8 @@ class ImuStream:
         self.samples = samples
         self.t = np.asarray(samples.stamp_s, dtype=np.float64)
         self._values = np.c_[samples.gyro_radps, samples.accel_mps2].astype(np.float64)
+        # a step between samples longer than this is a gap (GAP_PERIODS median periods)
+        self.gap_s = GAP_PERIODS * float(np.median(np.diff(self.t)))
         # interval()'s last answers: the front-end asks for the interval between two scans,
         # and its IMU check for the same one right after
         self._intervals: dict[tuple[float, float], Interval] = {}

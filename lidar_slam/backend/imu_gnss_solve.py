@@ -38,7 +38,8 @@ from lidar_slam.imu import (
     predict_pose,
     predict_poses_along,
 )
-from lidar_slam.io.imu_gnss import GAP_PERIODS, GnssFixes, ImuSamples
+from lidar_slam.io.imu_gnss import GnssFixes, ImuSamples
+from lidar_slam.io.imu_units import STANDARD_GRAVITY_MPS2
 
 log = logging.getLogger(__name__)
 
@@ -132,13 +133,11 @@ def _velocities(T_world_kf: dict[int, np.ndarray], tr: RunTrajectory, C: np.ndar
 
 def _imu_links(stream: ImuStream, cfg: SlamConfig, stamps: np.ndarray, keys: list[int]):
     """Preintegrated IMU between consecutive keyframes whose interval the samples cover without
-    a gap (GAP_PERIODS sample periods: the odometry alone bridges one; integrated across, a
+    a gap (ImuStream.gap_s: the odometry alone bridges one; integrated across, a
     0.5 s gap in a walk cost 0.36 m)."""
     params = combined_params(cfg.imu)
-    steps = np.diff(stream.t)
-    gap_s = GAP_PERIODS * float(np.median(steps)) if len(steps) else np.inf
-    gaps = stream.t[:-1][steps > gap_s]  # the sample before each gap
-    gap_ends = stream.t[1:][steps > gap_s]
+    gap = np.diff(stream.t) > stream.gap_s
+    gaps, gap_ends = stream.t[:-1][gap], stream.t[1:][gap]  # the samples either side of each
     links = []
     for i, j in zip(keys[:-1], keys[1:], strict=True):
         t0, t1 = float(stamps[i]), float(stamps[j])
@@ -189,20 +188,19 @@ def _imu_part(cfg: SlamConfig, imu: ImuSamples, tr: RunTrajectory, keys: list[in
     accel = {} if check is None else {"acceleration_disagreement": round(check.disagreement, 4),
                                       "acceleration_windows": check.windows,
                                       "acceleration_variation_mps2":
-                                          round(check.variation_mps2, 4)}
+                                          round(check.variation_mps2, 4),
+                                      "acceleration_gravity_mps2": round(check.gravity_mps2, 4)}
     why = None
     if check is not None and check.disagreement > imu_check.MAX_ACCEL_DISAGREEMENT:
         why = (f"left out of the final solve (its poses are lidar-only): its accelerations "
                f"differ from the lidar odometry's {check.disagreement:.3g}x as much as those "
                f"vary, over {check.windows} windows of {2 * imu_check.ACCEL_WINDOW_S:g} s (ax, "
                f"ay, az with a wrong sign, axes, unit or delay?)")
-    elif check is not None and abs(check.gravity_mps2 - imu_check.STANDARD_GRAVITY_MPS2) > \
+    elif check is not None and abs(check.gravity_mps2 - STANDARD_GRAVITY_MPS2) > \
             imu_check.MAX_GRAVITY_ERROR_MPS2:
         why = (f"left out of the final solve (its poses are lidar-only): the gravity its "
                f"accelerations imply is {check.gravity_mps2:.2f} m/s^2, not Earth's 9.81 (ax, "
                f"ay, az with a scale error?)")
-    if check is not None:
-        accel["acceleration_gravity_mps2"] = round(check.gravity_mps2, 4)
     if why is not None:
         log.warning("%s: IMU %s", imu.source, why)
         return [], None, {"factors": 0, "reason": why, **accel}

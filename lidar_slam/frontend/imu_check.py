@@ -53,7 +53,6 @@ import numpy as np
 
 from lidar_slam.geometry import rotvec_from_matrix
 from lidar_slam.imu import ImuStream, closest_rotation
-from lidar_slam.io.imu_gnss import GAP_PERIODS
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +86,6 @@ MAX_ACCEL_DISAGREEMENT = 0.5
 # this: beyond, the accelerometer's scale is off (x1.08: 10.6 m/s^2, ATE 0.37 m against 0.02
 # m with the true scale, its disagreement only 0.03: gravity is what it scales most). The bank:
 # 9.71-9.91; a consumer unit's scale error, 1-3 %, stays inside.
-STANDARD_GRAVITY_MPS2 = 9.80665
 MAX_GRAVITY_ERROR_MPS2 = 0.4
 MAX_ACCEL_GAP_S = 0.1  # IMU samples further apart inside a window: the window is not compared
 # Below this RMS of the odometry's accelerations (windows of 2 s) there is nothing to compare:
@@ -120,7 +118,6 @@ class ImuCheck:
         self.n_disagreements = 0
         self.ratio: float | None = None
         self.mount_error_deg: float | None = None
-        self._gap: tuple[ImuStream, float] | None = None  # (stream, its gap length in s)
 
     # -- evidence --------------------------------------------------------------------------------
 
@@ -134,7 +131,7 @@ class ImuCheck:
         if not (stream.start_s <= t0 and t_ref <= stream.end_s):
             return None  # the gyro does not cover the interval (held ends compare nothing)
         iv = stream.interval(t0, t_ref)
-        if len(iv.dt_s) and iv.dt_s.max() > self._gap_s(stream):
+        if len(iv.dt_s) and iv.dt_s.max() > stream.gap_s:
             return None  # the gyro misses part of the interval: held across, it compares nothing
         w = iv.gyro_radps * self.gyro_scale
         path_deg = float(np.degrees((np.linalg.norm(w, axis=1) * iv.dt_s).sum()))
@@ -144,13 +141,6 @@ class ImuCheck:
                                lidar_vec, gyro_vec))
         del self.intervals[:-max(4 * MOUNT_SCANS, BLOCK_SCANS)]
         return self._units() if self.verdict == "pending" else self._mounting()
-
-    def _gap_s(self, stream: ImuStream) -> float:
-        """A step between samples longer than this is a gap (GAP_PERIODS median periods)."""
-        if self._gap is None or self._gap[0] is not stream:
-            steps = np.diff(stream.t)
-            self._gap = (stream, GAP_PERIODS * float(np.median(steps)) if len(steps) else np.inf)
-        return self._gap[1]
 
     def disagreed(self) -> str | None:
         """The front-end re-initialised the IMU after its prediction disagreed with the

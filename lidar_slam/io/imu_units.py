@@ -69,10 +69,12 @@ def gnss_stamps_in_s(rows: np.ndarray, source: str | Path) -> tuple[np.ndarray, 
     seconds stay as read; otherwise the unit that fits both, the one whose stamps look like
     epoch seconds (EPOCH_S) first, then the one whose fixes come closest to 1 Hz."""
     rows = np.asarray(rows, dtype=np.float64)
-    stamps = rows[:, 0][np.isfinite(rows[:, 0])] if len(rows) else rows[:, :0]
+    if len(rows) < 2:
+        return rows, {}
+    stamps = rows[:, 0][np.isfinite(rows[:, 0])]
     steps = np.diff(stamps)
     steps = steps[steps > 0]
-    if len(stamps) < 2 or not len(steps):
+    if not len(steps):
         return rows, {}
     spacing, size = float(np.median(steps)), float(np.median(np.abs(stamps)))
 
@@ -119,7 +121,7 @@ def to_standard_units(rows: np.ndarray, source: str | Path) -> tuple[np.ndarray,
     if len(rows) < 2:
         return rows, {}
     t_scale, a_scale = stamp_scale(rows[:, 0], source), accel_scale(rows[:, 4:7], source)
-    read_as = {**({"stamps": dict((s, u) for s, u in STAMP_UNITS)[t_scale]}
+    read_as = {**({"stamps": dict(STAMP_UNITS)[t_scale]}
                   if t_scale != 1.0 else {}),
                **({"accel": "g"} if a_scale != 1.0 else {})}
     if not read_as:

@@ -211,4 +211,4 @@ def on_scan_clock(stream, what: str, offset_s: float, scan_stamps: np.ndarray | 
             return None, {"used": False, "reason": f"{stream.source}: {problem}"}
         check_overlap(stream.source, stream.stamp_s, *span, label)
     return stream, {"used": True, **stream_info(stream.stamp_s, stream.source, stream.dropped,
-                                               offset_s, getattr(stream, "read_as", None))}
+                                               offset_s, stream.read_as)}
