@@ -117,6 +117,19 @@ def handheld_walk(tmp_path_factory) -> Path:
     return seq
 
 
+@pytest.fixture(scope="session")
+def trot_end(tmp_path_factory) -> Path:
+    """6 s of `simulate --motion legged --world office --sensor xt32 --stamp end --seed 112`
+    (60 scans of bank office-legged-xt32's trot, stamps at sweep end, no IMU)."""
+    seq = tmp_path_factory.mktemp("trot") / "seq"
+    proc = subprocess.run([sys.executable, "-m", "lidar_slam.cli", "simulate", "--motion",
+                           "legged", "--world", "office", "--sensor", "xt32", "--stamp", "end",
+                           "--seed", "112", "--duration-s", "6", "--out", str(seq)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return seq
+
+
 def require_ray() -> None:
     """Skip a test that needs Ray (the cluster extra) where it is not installed, unless
     LIDAR_SLAM_REQUIRE_RAY=1 (set by .ci/run, whose install includes the extra): then fail."""

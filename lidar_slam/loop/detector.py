@@ -15,7 +15,7 @@ import numpy as np
 from lidar_slam.backend.factors import sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.edge_information import EdgeInformation
-from lidar_slam.geometry import relative, to_xyz_quat, transform_points
+from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import Side, match_side, query_side, verify
 from lidar_slam.map.keyframes import KeyframeStore
@@ -252,16 +252,24 @@ class LoopDetector:
 
 
 def loops_csv_rows(records: list[LoopRecord],
-                   backend: dict[tuple[int, int], str] | None = None) -> list[list]:
+                   backend: dict[tuple[int, int], str] | None = None,
+                   node_to_frame: dict[int, np.ndarray] | None = None) -> list[list]:
     """loops.csv rows (header first). `accepted` means the loop passed the ICP gates; `backend`
     (accepted loops only) what the final solve made of it, keyed (match kf, query kf): inlier,
-    or rejected (GNC weight 0; with Huber, residual beyond the 99 % inlier gate)."""
+    or rejected (GNC weight 0; with Huber, residual beyond the 99 % inlier gate). The pose is
+    T_match_query between the two frames at their stamps: a loop measured between graph nodes
+    elsewhere (node_to_frame: keyframe -> T_node_frame) is carried to the stamps."""
     rows: list[list] = [["query_frame", "match_frame", "descriptor_distance", "yaw_guess_deg",
                          "fitness", "rmse_m", "accepted", "reason", "x", "y", "z", "qx", "qy",
                          "qz", "qw", "backend"]]
     backend = backend or {}
     for r in records:
-        pose = to_xyz_quat(r.T_match_query) if r.T_match_query is not None else [np.nan] * 7
+        T = r.T_match_query
+        if T is not None and node_to_frame and (r.query_kf in node_to_frame
+                                                or r.match_kf in node_to_frame):
+            I4 = np.eye(4)
+            T = inverse(node_to_frame.get(r.match_kf, I4)) @ T @ node_to_frame.get(r.query_kf, I4)
+        pose = to_xyz_quat(T) if T is not None else [np.nan] * 7
         status = backend.get((r.match_kf, r.query_kf), "") if r.accepted else ""
         rows.append([r.query_frame, r.match_frame, f"{r.distance:.4f}", f"{r.yaw_guess_deg:.1f}",
                      f"{r.fitness:.4f}", f"{r.rmse_m:.4f}", int(r.accepted), r.reason,

@@ -227,6 +227,10 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "loop_info": np.array([c.information for c in constraints]).reshape(-1, 6, 6),
         "loop_fit": np.array([[c.fitness, c.rmse_m] for c in constraints]).reshape(-1, 2),
         "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
+        # the last frame's registered pose when its stamp pose is still extrapolated
+        # (Pipeline.unsettled): position, ref_s, T_world_ref
+        "unsettled": (np.zeros((0, 18)) if pipe.unsettled is None else np.array(
+            [[pipe.unsettled[0], pipe.unsettled[2], *np.ravel(pipe.unsettled[1][:4, :4])]])),
         "backend_live": (pipe.backend.state() if pipe.backend is not None
                          else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
@@ -278,6 +282,8 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.odom_poses = list(a["odom_poses"])
     r.frame_kf = [int(k) for k in a["frame_kf"]]
     r.kf_up = {int(row[0]): np.array(row[1:]) for row in a.get("kf_up", np.zeros((0, 4)))}
+    for row in a.get("unsettled", np.zeros((0, 18))):
+        pipe.unsettled = (int(row[0]), np.array(row[2:]).reshape(4, 4), float(row[1]))
     r.skipped_empty = meta["skipped_empty"]
     r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]

@@ -37,12 +37,28 @@ def write_loops(out_dir: Path, result: RunResult) -> dict:
     from lidar_slam.loop.detector import loops_csv_rows
 
     with atomic_path(out_dir / "loops.csv") as tmp, open(tmp, "w", newline="") as fh:
-        csv.writer(fh).writerows(loops_csv_rows(result.loops, result.loop_backend))
+        csv.writer(fh).writerows(loops_csv_rows(result.loops, result.loop_backend,
+                                                node_to_frame(result)))
     if result.graph is not None:
         result.graph.write_g2o(out_dir / "graph.g2o")
     return {"loops_candidates": len(result.loops),
             "loops_accepted": sum(1 for r in result.loops if r.accepted),
             "loops_backend_rejected": sum(s == "rejected" for s in result.loop_backend.values())}
+
+
+def node_to_frame(result: RunResult) -> dict[int, np.ndarray]:
+    """Per keyframe whose graph node is not at its frame's stamp (keyframe 0, at the middle of
+    its sweep; without an IMU and with sweep-end stamps every keyframe: Pipeline._add_keyframe),
+    T_node_frame: the node to its frame at the stamp, along the run's odometry."""
+    out: dict[int, np.ndarray] = {}
+    if not len(result.store) or not result.odom_poses:
+        return out
+    table = result.store.table()
+    pos = np.searchsorted(np.asarray(result.indices), table["frame_index"])
+    for k, (T_node, i) in enumerate(zip(table["T"], pos)):
+        if i < len(result.odom_poses) and not np.array_equal(T_node, result.odom_poses[i]):
+            out[k] = inverse(T_node) @ result.odom_poses[i]
+    return out
 
 
 def write_map_manifest(store: KeyframeStore, T_map_kf: dict[int, np.ndarray],

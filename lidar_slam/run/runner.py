@@ -85,7 +85,8 @@ def _process_scans(pipe, scans, out: Path, stop: StopSignals, progress) -> _Loop
     from lidar_slam.run.outputs import OdometryStream
 
     end = _LoopEnd()
-    stream = OdometryStream(out, pipe.result.odom_poses)
+    stream = OdometryStream(out, pipe.result.odom_poses[:pipe.settled_frames])
+    streamed = pipe.settled_frames
     every = pipe.cfg.checkpoint.every_keyframes
     try:
         for scan in scans:
@@ -96,7 +97,10 @@ def _process_scans(pipe, scans, out: Path, stop: StopSignals, progress) -> _Loop
             end.n_read += 1
             end.n_timed += scan.point_times is not None
             progress.tick()
-            stream.append(pipe.result.odom_poses[-1])
+            # frames whose pose a later scan no longer changes (Pipeline.settled_frames)
+            for T in pipe.result.odom_poses[streamed:pipe.settled_frames]:
+                stream.append(T)
+            streamed = pipe.settled_frames
             if every and len(pipe.result.store) != n_kf and len(pipe.result.store) % every == 0:
                 checkpoint.save(out, pipe, pipe.loops_applied_upto)
     except KeyboardInterrupt:
@@ -108,6 +112,8 @@ def _process_scans(pipe, scans, out: Path, stop: StopSignals, progress) -> _Loop
         log.error("internal error after %d frames", len(pipe.result.indices))
     finally:
         progress.close()
+        for T in pipe.result.odom_poses[streamed:]:
+            stream.append(T)
         stream.close()
     if every and (stop.received or end.error) and not end.internal_error and len(pipe.result.store):
         # Stopped by a signal or a bad scan: a checkpoint of every frame so far, so that
