@@ -128,6 +128,40 @@ def test_odometry_variance_splits_translation_by_gravity_whatever_the_node_frame
         assert sd_side == pytest.approx(0.01 * np.sqrt(VARIANCE_FACTOR_MIN), rel=1e-6)
 
 
+def test_a_few_flicks_get_their_own_factor_and_leave_the_other_edges_as_they_are():
+    """White edge errors at their own sigma, and 5 of 300 edges (flicks) 20 sigma off in
+    rotation: the mean over every edge loosens all of them ~3x; the robust factors stay ~1
+    and only the flicks are loosened, each to fit its residual."""
+    from scipy.stats import chi2
+
+    from lidar_slam.backend.imu_gnss_solve import (
+        ODOMETRY_OUTLIER_CHI2,
+        _scaled_odometry,
+        odometry_variance_robust,
+    )
+    from lidar_slam.geometry import matrix_from_rotvec
+
+    assert ODOMETRY_OUTLIER_CHI2 == pytest.approx(chi2.ppf(0.9999, 6), abs=1e-3)
+
+    sr, st = np.radians(0.1), 0.01
+    info = np.diag([sr ** -2] * 3 + [st ** -2] * 3)
+    rng = np.random.default_rng(6)
+    poses, edges, flicks = {0: np.eye(4)}, [], {30, 90, 150, 210, 270}
+    for k in range(1, 301):
+        poses[k] = poses[k - 1] @ make_pose(np.eye(3), [0.5, 0.0, 0.0])
+        rot = rng.normal(0.0, sr, 3) + (np.array([20.0 * sr, 0.0, 0.0]) if k in flicks else 0.0)
+        err = make_pose(matrix_from_rotvec(rot), rng.normal(0.0, st, 3))
+        edges.append(BetweenFactor(k - 1, k, make_pose(np.eye(3), [0.5, 0.0, 0.0]) @ err, info))
+    assert odometry_variance(edges, poses)[0] > 2.5  # every edge loosened for five
+    factors, own = odometry_variance_robust(edges, poses)
+    assert all(0.7 < f < 1.4 for f in factors), factors
+    assert set(own) == {(k - 1, k) for k in flicks}
+    assert all(50.0 < g < 110.0 for g in own.values()), own  # ~400 / 6 with the noise
+    scaled = {(e.i, e.j): e for e in _scaled_odometry(edges, factors, poses, own)}
+    sd = np.sqrt(np.linalg.inv(scaled[(29, 30)].information)[0, 0])
+    assert sd == pytest.approx(sr * np.sqrt(factors[0] * own[(29, 30)]), rel=1e-6)
+
+
 def test_the_drift_gate_passes_a_loop_within_the_odometrys_drift_and_refuses_an_aliased_one():
     from lidar_slam.config import load_config
     from lidar_slam.loop.detector import LoopDetector

@@ -292,7 +292,7 @@ def _refined(cfg: SlamConfig, C: np.ndarray) -> dict:
 CHI2_3_MEDIAN = 2.366  # median of the chi-square distribution with 3 degrees of freedom
 
 
-VARIANCE_FACTOR_MIN = 1.0 / 16.0  # a guard (a solve whose residuals vanish); bank: >= 0.084
+VARIANCE_FACTOR_MIN = 1.0 / 16.0  # a guard (residuals that vanish); two bank walks reach it
 
 
 def _odometry_residuals(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
@@ -345,7 +345,10 @@ def odometry_variance(edges: list[BetweenFactor], poses: dict[int, np.ndarray]
     return _mean_factors(r_rot, r_h, r_v)
 
 
-ODOMETRY_OUTLIER_P = 0.9999  # an edge beyond this chi-square (6 dof) quantile: a flick
+# An edge beyond the 99.99 % chi-square quantile (6 dof) of its scaled covariance is a flick:
+# scipy.stats.chi2.ppf(0.9999, 6) (tests/test_edge_information.py; scipy.stats takes 0.7 s to
+# import)
+ODOMETRY_OUTLIER_CHI2 = 27.856
 MIN_INLIER_EDGES = 10
 
 
@@ -355,18 +358,16 @@ def odometry_variance_robust(edges: list[BetweenFactor], poses: dict[int, np.nda
     fractions both above 0): a hand-held walk's few flicks (a scan deskewed along the wrong
     motion) carry most of the edges' residual, and a mean over every edge loosened all of them
     for a few (office-handheld-os1: rotation chi2 per dof mean 2.3, median 0.33; NEES 0.79).
-    The factors are the mean over the edges within the ODOMETRY_OUTLIER_P chi-square quantile
-    (6 dof) of the covariance they give, iterated until that set holds; each edge beyond it gets
+    The factors are the mean over the edges within ODOMETRY_OUTLIER_CHI2 (the 99.99 % quantile,
+    6 dof) of the covariance they give, iterated until that set holds; each edge beyond it gets
     its own factor (its chi2 over 6, on top of the three). Returns the factors and
     {(i, j): own factor}. Where the errors persist from edge to edge (the chain, a car's slow
     bias) a large residual is part of the path's drift, not a flick: odometry_variance there
     (docs/bank.md, Decisions, 2026-12-05)."""
-    from scipy.stats import chi2
-
     keys, r_rot, r_h, r_v = _odometry_residuals(edges, poses)
     if not len(r_rot):
         return (1.0, 1.0, 1.0), {}
-    gate = float(chi2.ppf(ODOMETRY_OUTLIER_P, 6))
+    gate = ODOMETRY_OUTLIER_CHI2
     inlier = np.ones(len(keys), dtype=bool)
     for _ in range(10):
         f = _mean_factors(r_rot[inlier], r_h[inlier], r_v[inlier])
