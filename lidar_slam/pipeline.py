@@ -79,7 +79,9 @@ class RunResult:
     def final_poses(self) -> np.ndarray:
         """Every frame's pose (K, 4, 4): its odometry moved by the correction (optimised pose
         less odometry) of the keyframe it hangs off and of the next one, blended by its stamp
-        between theirs. A keyframe's own frame gets exactly the keyframe's pose; one moved
+        between theirs. A keyframe's own frame gets exactly the keyframe's pose (moved from
+        its node to the stamp where the node is not at the stamp: keyframe 0, and sweep-end
+        scans without an IMU, Pipeline._add_keyframe); one moved
         by its own keyframe alone would jump at the next (on a car with an IMU the final
         solve corrects keyframes by a few cm and 0.01 deg). Frames the final solve placed with
         the IMU (frame_poses) take those."""
@@ -159,6 +161,7 @@ class Pipeline:
         # The last frame's pose at its stamp, when only an extrapolation so far (_settle):
         # (its position in the run, T_world_ref, ref_s), else None.
         self.unsettled: tuple[int, np.ndarray, float] | None = None
+        self.unsettled_stamp_s = 0.0  # that frame's stamp
         self.frames_total: int | None = None  # scans the run will have, when known (pacing)
         self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
 
@@ -211,6 +214,7 @@ class Pipeline:
         r.frame_kf.append(len(r.store) - 1)
         if self._extrapolated(deskewed, odom):
             self.unsettled = (len(r.odom_poses) - 1, odom.T_world_ref, deskewed.ref_s)
+            self.unsettled_stamp_s = scan.stamp_s
         if self.viz is not None:
             self.viz.log_scan(self, scan, transform_points(inverse(odom.T_ref_stamp),
                                                            deskewed.points), odom.T_world_scan,
@@ -220,7 +224,9 @@ class Pipeline:
         """Whether the scan's pose at its stamp is the registered instant's (the sweep's middle)
         moved forward along a motion the scans so far only extrapolate: stamps at sweep end,
         deskewed at constant velocity (no IMU). The next scan's registration brings the stamp
-        between two registered instants (_settle)."""
+        between two registered instants (_settle). With an IMU the IMU's motion carries the
+        registered pose to the stamp; the scans before it is initialised (and after the IMU
+        check switched it off) keep their extrapolation."""
         return (self.inertial is None and odom.registered and deskewed.ref_s < 0.0
                 and deskewed.motion is None)
 
@@ -234,17 +240,20 @@ class Pipeline:
             return
         pos, T_world_ref, ref_s = self.unsettled
         self.unsettled = None
-        if not odom.registered or not deskewed.period_s > 0.0 or (
-                pos == 0 and odom.T_world_first is not None):
+        # the two registered instants, from the previous one: its stamp at -ref_s
+        span = deskewed.scan.stamp_s + deskewed.ref_s - (self.unsettled_stamp_s + ref_s)
+        if not odom.registered or not span > 0.0 or (pos == 0 and odom.T_world_first is not None):
             return
         D = inverse(T_world_ref) @ odom.T_world_ref
-        self.result.odom_poses[pos] = T_world_ref @ interpolate(np.eye(4), D,
-                                                                -ref_s / deskewed.period_s)
+        self.result.odom_poses[pos] = T_world_ref @ interpolate(np.eye(4), D, -ref_s / span)
 
     @property
     def settled_frames(self) -> int:
-        """How many of the frames so far have their final odometry pose (all but an unsettled
-        last one)."""
+        """How many of the frames so far have their final odometry pose: all but an unsettled
+        last one, and none before the second registered scan (frame 0's pose moves to its stamp
+        then: lidar_slam.frontend.odometry T_world_first)."""
+        if self.odometry.n_registered < 2:
+            return 0
         return len(self.result.odom_poses) - (self.unsettled is not None)
 
     def _add_keyframe(self, deskewed: DeskewedScan, odom: OdometryResult) -> None:
@@ -461,7 +470,8 @@ def run(scans: Iterable[Scan], cfg: SlamConfig, run_dir: str | Path | None = Non
     and errors propagate. The run driver (what `lidar-slam run` and `batch` do: --out rules,
     resume, signals, the frames so far kept on an error, the outputs) is
     lidar_slam.run.run_sequence. inertial: the IMU / GNSS (io.inertial_input.InertialInput):
-    the IMU deskews and predicts in the front-end, both go into the final solve."""
+    the IMU deskews and predicts in the front-end, both go into the final solve. on_scan sees
+    the odometry poses so far; the last may still move (Pipeline.settled_frames)."""
     pipe = Pipeline(cfg, run_dir, inertial=inertial)
     try:
         for scan in scans:

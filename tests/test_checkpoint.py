@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import assert_one_line_error
 
+from lidar_slam.config import load_config
 from lidar_slam.io.trajectory import read_kitti_poses
 
 REPO = Path(__file__).resolve().parents[1]
@@ -193,3 +194,40 @@ def test_a_run_killed_while_its_pipeline_starts_is_one_resume_knows(tmp_path, mo
     monkeypatch.setattr(pipeline.Pipeline, "__init__", init)
     resumed = run_sequence(SAMPLE, out, resume=True, progress=False, n_scans=10)
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 0
+
+
+def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_path,
+                                                                            monkeypatch):
+    """A checkpoint without the unsettled frame (made before 8d17648, when a sweep-end scan's
+    keyframe was kept at its stamp) of a run without an IMU is refused with one line, not
+    continued into a store mixing the two conventions."""
+    import io
+
+    from lidar_slam import pipeline
+    from lidar_slam.errors import InputError
+    from lidar_slam.run import checkpoint, run_sequence
+
+    process, seen = pipeline.Pipeline.process, []
+
+    def stopped_at_30(self, scan):
+        if len(seen) == 30:
+            raise KeyboardInterrupt
+        seen.append(scan.index)
+        return process(self, scan)
+
+    monkeypatch.setattr(pipeline.Pipeline, "process", stopped_at_30)
+    out = tmp_path / "run"
+    assert run_sequence(SAMPLE, out, progress=False).failure.exit_code == 130
+    d = out / "checkpoint"
+    manifest = checkpoint._read_manifest(d)
+    with np.load(d / manifest["state"]) as z:
+        old = {k: z[k] for k in z.files if k != "unsettled"}
+    buf = io.BytesIO()
+    np.savez(buf, **old)
+    (d / manifest["state"]).write_bytes(buf.getvalue())
+    manifest["files"][f"checkpoint/{manifest['state']}"] = checkpoint._whole_entry(buf.getvalue())
+    checkpoint._write_manifest(d, {k: v for k, v in manifest.items()
+                                   if k not in ("version", "sha256")})
+    monkeypatch.setattr(pipeline.Pipeline, "process", process)
+    with pytest.raises(InputError, match="older lidar-slam.*--overwrite"):
+        checkpoint.restore(out, pipeline.Pipeline(load_config(), out, resume=True))

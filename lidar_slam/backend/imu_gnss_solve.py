@@ -68,7 +68,8 @@ MIN_IMU_SPAN_S = 1.0  # IMU links must cover this much to tell gravity
 class RunTrajectory:
     """What the run knows of its path: keyframe stamps (s) and odometry poses (n, 4, 4: the
     back-end's nodes), the odometry at each keyframe's stamp (n, 4, 4: the first keyframe's node
-    is at the middle of its sweep, lidar_slam.frontend.odometry T_world_first), every frame's
+    is at the middle of its sweep, lidar_slam.frontend.odometry T_world_first, and so is every
+    keyframe's of a sweep-end run without an IMU, lidar_slam.pipeline), every frame's
     stamp and odometry pose (m, 4, 4); all in the odometry's world frame."""
 
     kf_stamps_s: np.ndarray
@@ -378,7 +379,7 @@ def odometry_variance_robust(edges: list[BetweenFactor], poses: dict[int, np.nda
         inlier = now
     f = _mean_factors(r_rot[inlier], r_h[inlier], r_v[inlier])
     q = r_rot / f[0] + r_h / f[1] + r_v / f[2]
-    return f, {k: float(qk) / 6.0 for k, qk, ok in zip(keys, q, inlier) if not ok}
+    return f, {k: max(1.0, float(qk) / 6.0) for k, qk, ok in zip(keys, q, inlier) if not ok}
 
 
 WHITE_FRACTION_MAX = 0.95  # of an edge's covariance: some walk always stays (the local map moves)

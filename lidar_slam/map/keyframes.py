@@ -12,7 +12,8 @@ localize --map`, `lidar-slam export`). Layout (version 3), under RUN/keyframes/:
   int64, point count int64, T_world_kf_odom (4x4 float64, row-major), has_intensity uint8,
   stamp_s float64 (the scan's stamp, NaN when unknown; version 3 added it).
 - `points.bin`: float32 x, y, z, intensity per point (metres, the keyframe's sensor frame at
-  its scan's stamp), keyframe after keyframe.
+  its scan's stamp; keyframe 0, and sweep-end scans of a run without an IMU, at the middle of the
+  sweep, where T_world_kf_odom is too), keyframe after keyframe.
 - `map_poses.bin` (end of the run): T_map_kf per keyframe, 4x4 float64 row-major little-endian,
   in keyframe order: the final (loop-corrected) poses in the map frame, which is the frame of
   the run's `poses_kitti.txt` (frame 0 = identity), the frame `map.ply` is in.
@@ -110,7 +111,8 @@ class KeyframeStore:
 
     def add(self, frame_index: int, T_world_kf_odom: np.ndarray, points: np.ndarray,
             intensity: np.ndarray | None, stamp_s: float = np.nan) -> Keyframe:
-        """Append a keyframe (points (K,3) in its frame at the stamp); returns it with its id."""
+        """Append a keyframe (points (K,3) in its frame, the node's: at the stamp or the sweep's
+        middle, lidar_slam.pipeline Pipeline._add_keyframe); returns it with its id."""
         kf_id = self._n
         rows = np.zeros((len(points), 4), dtype=POINT_DTYPE)
         rows[:, :3] = points

@@ -124,7 +124,8 @@ def write_geo_poses(out_dir: Path, geo: GeoReference, frames: np.ndarray, stamps
 class OdometryStream:
     """odometry_kitti.txt written while the run goes, one line per frame (line-buffered: every
     line reaches the file as one write), so even a killed run (SIGKILL, out of memory) keeps its
-    odometry. write_run rewrites the file from the result at the end, with the same content."""
+    odometry. Only settled frames (Pipeline.settled_frames), in the odometry's own world; write_run
+    rewrites the file at the end, re-based so that frame 0 is the identity."""
 
     def __init__(self, out_dir: Path, done: list[np.ndarray] = ()):
         self.path = out_dir / "odometry_kitti.txt"
