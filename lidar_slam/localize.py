@@ -181,21 +181,25 @@ class Localizer:
         # delta measured between the last two frames, both registered (else it is stale, or
         # the identity before any measurement: the prediction may be off by a frame's motion)
         self.motion_fresh = False
-        self._pending: tuple | None = None  # a relocalised frame waiting for the next's motion
+        # a relocalised frame, or one with its stamp after the sweep's middle, waiting for the
+        # next frame's motion
+        self._pending: tuple | None = None
         self.stats = LocalizeStats()
         self.gates = CorrectionGates.for_map(saved_map)
 
     def step(self, scan: Scan) -> list[LocalizedFrame]:
         """Localise one scan; returns the frames whose result is final, in order: usually this
-        one; a relocalised frame waits for the next frame's motion to move its pose from the
-        middle of its sweep to its stamp (finish() returns a frame still waiting)."""
+        one; a relocalised frame, and a tracked one stamped after the middle of its sweep (stamps
+        at sweep end), wait for the next frame's motion to move their pose from the middle of the
+        sweep to the stamp: between two registrations, not extrapolated along the last motion
+        (as lidar_slam.pipeline does; finish() returns a frame still waiting)."""
         t0 = time.perf_counter()
         deskewed = self.deskew(scan, self.delta)
         source = registration_points(deskewed, self.cfg)
         self.stats.seconds["deskew"] += time.perf_counter() - t0
         T, status, fitness = self._locate(deskewed, source)
         if status == Status.TRACKING and self.predicted == 0:  # registered twice in a row
-            if self._pending is not None:
+            if self._pending is not None and self._pending[3] == Status.LOCALIZED:
                 T = self._refine_start(deskewed, T)
             self.delta = inverse(self.T_map_ref) @ T
             self.motion_fresh = True
@@ -215,7 +219,7 @@ class Localizer:
         out = [] if self._pending is None else [self._final(*self._pending)]
         self._pending = None
         frame = (scan.index, scan.stamp_s, T, status, float(fitness), deskewed)
-        if status == Status.LOCALIZED:
+        if status == Status.LOCALIZED or (status == Status.TRACKING and deskewed.ref_s < 0.0):
             self._pending = frame
         else:
             out.append(self._final(*frame))

@@ -288,3 +288,21 @@ def test_prediction_misses_are_measured_on_evenly_spaced_frames_only():
     err_m, err_deg = prediction_errors(np.array(poses), stamps)
     np.testing.assert_allclose(err_deg, [0, 0, 10, 0, 0], atol=1e-9)  # frames 2-6, not 7
     np.testing.assert_allclose(err_m, 0.0, atol=1e-9)
+
+
+def test_sweep_end_stamps_are_localised_between_two_registrations(trot_end, tmp_path):
+    """A tracked frame stamped at its sweep's end waits for the next frame's motion to move its
+    pose from the middle of the sweep to the stamp, as the run does (lidar_slam.pipeline), not
+    along the last motion. 6 s of the bank's trot localised in its own map: frame-to-frame
+    rotation error 2.18 deg median extrapolated, 1.27 now."""
+    from lidar_slam.run import run_sequence
+    from lidar_slam.run.localize import localize_sequence
+
+    assert run_sequence(trot_end, tmp_path / "map", progress=False).failure is None
+    localize_sequence(trot_end, tmp_path / "map", tmp_path / "loc", progress=False)
+    P = read_kitti_poses(tmp_path / "loc" / "poses_kitti.txt")
+    G = read_kitti_poses(trot_end / "poses.txt")
+    assert len(P) == len(G)
+    err = [rotation_angle_deg(inverse(inverse(G[k]) @ G[k + 1]) @ (inverse(P[k]) @ P[k + 1]))
+           for k in range(len(P) - 1)]
+    assert np.median(err) < 1.7, np.median(err)
