@@ -162,6 +162,8 @@ class Pipeline:
         # (its position in the run, T_world_ref, ref_s), else None.
         self.unsettled: tuple[int, np.ndarray, float] | None = None
         self.unsettled_stamp_s = 0.0  # that frame's stamp
+        # frames predicted (not registered) since it: (position, stamp), settled with it
+        self.unsettled_predicted: list[tuple[int, float]] = []
         self.frames_total: int | None = None  # scans the run will have, when known (pacing)
         self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
 
@@ -215,6 +217,9 @@ class Pipeline:
         if self._extrapolated(deskewed, odom):
             self.unsettled = (len(r.odom_poses) - 1, odom.T_world_ref, deskewed.ref_s)
             self.unsettled_stamp_s = scan.stamp_s
+            self.unsettled_predicted = []
+        elif self.unsettled is not None and not odom.registered:
+            self.unsettled_predicted.append((len(r.odom_poses) - 1, scan.stamp_s))
         if self.viz is not None:
             self.viz.log_scan(self, scan, transform_points(inverse(odom.T_ref_stamp),
                                                            deskewed.points), odom.T_world_scan,
@@ -235,17 +240,27 @@ class Pipeline:
         no IMU): interpolated between its registered instant and this scan's, as a sweep-start
         stamp is (lidar_slam.frontend.deskew T_ref_stamp), instead of carried forward along the
         previous motion. On a legged trot (bank office-legged-xt32, lidar only) the frame-to-frame
-        rotation error of the stamp poses halves: 3.19 -> 1.68 deg median (docs/bank.md)."""
-        if self.unsettled is None:
-            return
+        rotation error of the stamp poses halves: 3.19 -> 1.68 deg median (docs/bank.md). Scans
+        skipped in between (too few points: their poses predicted) wait with it and are placed
+        between the same two registrations by their stamps, not carried along the last motion
+        (two empty scans mid-turn: 10 deg off before)."""
+        if self.unsettled is None or not odom.registered:
+            return  # a skipped scan: it waits too (process)
         pos, T_world_ref, ref_s = self.unsettled
-        self.unsettled = None
-        # the two registered instants, from the previous one: its stamp at -ref_s
-        span = deskewed.scan.stamp_s + deskewed.ref_s - (self.unsettled_stamp_s + ref_s)
-        if not odom.registered or not span > 0.0 or (pos == 0 and odom.T_world_first is not None):
+        frames = [(pos, self.unsettled_stamp_s)] + self.unsettled_predicted
+        self.unsettled, self.unsettled_predicted = None, []
+        # the two registered instants
+        t_a = self.unsettled_stamp_s + ref_s
+        span = deskewed.scan.stamp_s + deskewed.ref_s - t_a
+        if not span > 0.0:
             return
         D = inverse(T_world_ref) @ odom.T_world_ref
-        self.result.odom_poses[pos] = T_world_ref @ interpolate(np.eye(4), D, -ref_s / span)
+        for i, stamp_s in frames:
+            if i == 0 and odom.T_world_first is not None:
+                continue  # frame 0: the odometry moved it already (T_world_first)
+            s = (stamp_s - t_a) / span
+            if 0.0 < s < 1.0:
+                self.result.odom_poses[i] = T_world_ref @ interpolate(np.eye(4), D, s)
 
     @property
     def settled_frames(self) -> int:
@@ -254,7 +269,9 @@ class Pipeline:
         then: lidar_slam.frontend.odometry T_world_first)."""
         if self.odometry.n_registered < 2:
             return 0
-        return len(self.result.odom_poses) - (self.unsettled is not None)
+        if self.unsettled is None:
+            return len(self.result.odom_poses)
+        return self.unsettled[0]
 
     def _add_keyframe(self, deskewed: DeskewedScan, odom: OdometryResult) -> None:
         """Keyframe cloud (one deskewed point per voxel within the map range) to the store; its

@@ -232,6 +232,7 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "unsettled": (np.zeros((0, 19)) if pipe.unsettled is None else np.array(
             [[pipe.unsettled[0], pipe.unsettled[2], pipe.unsettled_stamp_s,
               *np.ravel(pipe.unsettled[1][:4, :4])]])),
+        "unsettled_predicted": np.array(pipe.unsettled_predicted, dtype=float).reshape(-1, 2),
         "backend_live": (pipe.backend.state() if pipe.backend is not None
                          else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
@@ -291,6 +292,8 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     for row in a.get("unsettled", np.zeros((0, 19))):
         pipe.unsettled = (int(row[0]), np.array(row[3:]).reshape(4, 4), float(row[1]))
         pipe.unsettled_stamp_s = float(row[2])
+    pipe.unsettled_predicted = [(int(i), float(t)) for i, t in
+                                a.get("unsettled_predicted", np.zeros((0, 2)))]
     r.skipped_empty = meta["skipped_empty"]
     r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]
