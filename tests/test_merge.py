@@ -356,3 +356,26 @@ def test_the_ouster_set_cut_in_two_merges_into_the_single_runs_loop(tmp_path):
     # One recording cut in two: nothing changed between the halves.
     with open(tmp_path / "m" / "changes.csv") as fh:
         assert list(csv.DictReader(fh)) == []
+
+
+def test_sessions_refuse_sweep_end_stamps_and_an_imu_clock_offset_in_one_line(tmp_path):
+    """--sessions are stamped at the sweep's start on the IMU's clock: --stamp end or
+    --imu-time-offset with them is one line, not silently ignored (a new user's pass)."""
+    for extra in (["--stamp", "end"], ["--imu", "--imu-time-offset", "0.02"]):
+        proc = lidar_slam("simulate", "--motion", "handheld", "--sessions", "2", "--duration-s",
+                          "3", "--out", tmp_path / "s", *extra)
+        assert_one_line_error(proc, "--sessions", "sweep's start")
+        assert not (tmp_path / "s").exists()
+
+
+def test_a_session_of_one_keyframe_is_merged_or_left_out_not_an_error(merged, tmp_path):
+    """A run of two scans (one keyframe: its graph.g2o has no edge) merged with another: placed
+    by its loops or reported and left out, never `no EDGE_SE2 ...` and exit 2 (a new user's
+    pass)."""
+    root, runs, _ = merged
+    short = tmp_path / "short"
+    proc = lidar_slam("run", root / "sim" / "session_1", "--out", short, "--n-scans", "2")
+    assert proc.returncode == 0, proc.stderr
+    proc = lidar_slam("merge", runs[0], short, "--out", tmp_path / "map")
+    assert proc.returncode == 0, proc.stderr
+    assert "session 1:" in proc.stdout and "1 keyframes" in proc.stdout, proc.stdout

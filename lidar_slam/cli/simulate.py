@@ -142,6 +142,10 @@ def simulate(
         if sessions is not None:
             from lidar_slam.sim.sessions import simulate_sessions_job
 
+            if stamp is not Stamp.start or imu_time_offset:
+                raise fail("--stamp end and --imu-time-offset go with one recording: --sessions "
+                           "are stamped at the sweep's start on the IMU's clock")
+
             typer.echo(simulate_sessions_job(out, sessions, motion.value,
                                              (world or default).value, duration_s or 60.0,
                                              (sensor or Sensor.os1_64).value, seed, changes,

@@ -101,7 +101,7 @@ def _graph_edges(path: Path, saved: SavedMap) -> tuple[list[G2oEdge], list[G2oEd
     T = saved.T_map_kf
     infos: dict[int, np.ndarray] = {}
     loops: list[G2oEdge] = []
-    if path.is_file():
+    if path.is_file() and n > 1:  # one keyframe: no odometry, and its graph has no edge
         g2o = read_g2o(path)
         if set(g2o.poses) == set(range(n)):
             infos = {e.i: e.information for e in g2o.edges if e.j == e.i + 1}
