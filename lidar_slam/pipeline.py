@@ -183,7 +183,13 @@ class Pipeline:
     def process(self, scan: Scan) -> None:
         """Run one scan through every stage."""
         if self.adaptive is None:
-            self.start(adapt.auto_values(self.cfg, scan.points))
+            adaptive = adapt.auto_values(self.cfg, scan.points)
+            if adaptive and len(scan.points) < self.cfg.data.min_points:
+                log.warning("%s: the first scan has %d points: the loop settings that are "
+                            "\"auto\" take their outdoor defaults (%s); set them in the config "
+                            "or start at a scan with points (--start)", scan.source,
+                            len(scan.points), adapt.describe(adaptive))
+            self.start(adaptive)
         r, t0 = self.result, time.perf_counter()
         if self.inertial is None:
             deskewed, guess = self.deskew(scan, self.odometry.last_delta), None

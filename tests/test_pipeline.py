@@ -247,3 +247,18 @@ def test_loop_worker_gets_the_odometry_priority_only_for_a_long_or_final_backlog
     assert is_urgent(100, 200, 300) and not is_urgent(10, 200, 300)  # the last scans
     assert not is_urgent(100, 200, None)  # end unknown (a stream): only the lag rule
     assert is_urgent(1, 200, 0)  # after the last scan
+
+
+def test_an_empty_first_scan_says_the_auto_loop_settings_are_defaults(trot_end, tmp_path,
+                                                                      caplog):
+    """The "auto" loop settings come from the first scan; an empty one left them at their
+    outdoor defaults without a word (a 60 m loop exclusion on a 61 m indoor loop: a new
+    user's pass). Now one warning names the scan and the values."""
+    import logging
+
+    seq = _with_empty_scans(trot_end, tmp_path / "first", (0,))
+    with caplog.at_level(logging.WARNING, logger="lidar_slam.pipeline"):
+        res = pipeline.run(open_source(seq).scans(0, 3), load_config(None))
+    res.store.close()
+    said = [r.getMessage() for r in caplog.records if "first scan has 0 points" in r.getMessage()]
+    assert len(said) == 1 and "000000.bin" in said[0] and "defaults" in said[0], said
