@@ -491,3 +491,20 @@ def test_a_pickled_npy_says_so_in_one_line(tmp_path):
     with pytest.raises(InputError, match=r"p.npy: a .npy of Python objects \(pickled\), not of "
                                          r"numbers; save the points as a numeric array$"):
         read_cloud(tmp_path / "p.npy")
+
+
+def test_a_scan_missing_its_point_times_beside_the_others_is_warned_by_name(trot_end, tmp_path,
+                                                                            caplog):
+    """velodyne_times/ holds every scan's times but one: that scan is read without deskew, and
+    one warning names its missing file (it was only a count in summary.json's deskew)."""
+    import logging
+    import shutil
+
+    seq = tmp_path / "seq"
+    shutil.copytree(trot_end, seq)
+    (seq / "velodyne_times" / "000002.bin").unlink()
+    with caplog.at_level(logging.WARNING, logger="lidar_slam.io.sources"):
+        scans = list(KittiSource(seq).scans(0, 4))
+    assert [s.point_times is None for s in scans] == [False, False, True, False]
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "000002.bin" in said[0] and "not deskewed" in said[0], said

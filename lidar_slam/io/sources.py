@@ -269,6 +269,9 @@ class KittiSource(StreamsBesideScans):
             if len(raw) != len(cloud.points):
                 raise InputError(tfile, f"has {len(raw)} times for {len(cloud.points)} points")
             times = relative_seconds(raw, stamp_ns)
+        elif len(cloud.points) and tfile.parent.is_dir():
+            log.warning("%s: missing beside the other scans' point times: scan %s is not "
+                        "deskewed", tfile, path.name)
         pts = correct_kitti_scan(cloud.points) if self.vertical_correction else cloud.points
         return CloudData(pts, times, cloud.intensity)
 
