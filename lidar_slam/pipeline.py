@@ -158,12 +158,10 @@ class Pipeline:
             self.result.graph = self.backend.graph
         self.viz = viz
         self.loops_applied_upto = -1  # keyframes whose loop results are in the graph
-        # The last frame's pose at its stamp, when only an extrapolation so far (_settle):
-        # (its position in the run, T_world_ref, ref_s), else None.
+        # The last registered frame whose pose at its stamp is only an extrapolation so far
+        # (_settle): (its position in the run, T_world_ref, ref_s), else None. Every frame after
+        # it was predicted (not registered) and waits with it.
         self.unsettled: tuple[int, np.ndarray, float] | None = None
-        self.unsettled_stamp_s = 0.0  # that frame's stamp
-        # frames predicted (not registered) since it: (position, stamp), settled with it
-        self.unsettled_predicted: list[tuple[int, float]] = []
         self.frames_total: int | None = None  # scans the run will have, when known (pacing)
         self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
 
@@ -222,10 +220,6 @@ class Pipeline:
         r.frame_kf.append(len(r.store) - 1)
         if self._extrapolated(deskewed, odom):
             self.unsettled = (len(r.odom_poses) - 1, odom.T_world_ref, deskewed.ref_s)
-            self.unsettled_stamp_s = scan.stamp_s
-            self.unsettled_predicted = []
-        elif self.unsettled is not None and not odom.registered:
-            self.unsettled_predicted.append((len(r.odom_poses) - 1, scan.stamp_s))
         if self.viz is not None:
             self.viz.log_scan(self, scan, transform_points(inverse(odom.T_ref_stamp),
                                                            deskewed.points), odom.T_world_scan,
@@ -251,20 +245,20 @@ class Pipeline:
         between the same two registrations by their stamps, not carried along the last motion
         (two empty scans mid-turn: 10 deg off before)."""
         if self.unsettled is None or not odom.registered:
-            return  # a skipped scan: it waits too (process)
+            return  # a skipped scan: it waits too
         pos, T_world_ref, ref_s = self.unsettled
-        frames = [(pos, self.unsettled_stamp_s)] + self.unsettled_predicted
-        self.unsettled, self.unsettled_predicted = None, []
+        self.unsettled = None
+        r = self.result
         # the two registered instants
-        t_a = self.unsettled_stamp_s + ref_s
+        t_a = r.stamps_s[pos] + ref_s
         span = deskewed.scan.stamp_s + deskewed.ref_s - t_a
         if not span > 0.0:
             return
         D = inverse(T_world_ref) @ odom.T_world_ref
-        for i, stamp_s in frames:
+        for i in range(pos, len(r.odom_poses)):  # it, and the skipped scans since
             if i == 0 and odom.T_world_first is not None:
                 continue  # frame 0: the odometry moved it already (T_world_first)
-            s = (stamp_s - t_a) / span
+            s = (r.stamps_s[i] - t_a) / span
             if 0.0 < s < 1.0:
                 self.result.odom_poses[i] = T_world_ref @ interpolate(np.eye(4), D, s)
 

@@ -130,6 +130,23 @@ def trot_end(tmp_path_factory) -> Path:
     return seq
 
 
+def stop_pipeline_after(monkeypatch, n_scans: int):
+    """Pipeline.process raises KeyboardInterrupt (as Ctrl-C) when handed the scan after the
+    first n_scans; returns a function that puts the real one back."""
+    from lidar_slam import pipeline
+
+    process, seen = pipeline.Pipeline.process, []
+
+    def stopped(self, scan):
+        if len(seen) == n_scans:
+            raise KeyboardInterrupt
+        seen.append(scan.index)
+        return process(self, scan)
+
+    monkeypatch.setattr(pipeline.Pipeline, "process", stopped)
+    return lambda: monkeypatch.setattr(pipeline.Pipeline, "process", process)
+
+
 def require_ray() -> None:
     """Skip a test that needs Ray (the cluster extra) where it is not installed, unless
     LIDAR_SLAM_REQUIRE_RAY=1 (set by .ci/run, whose install includes the extra): then fail."""

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_one_line_error
+from conftest import assert_one_line_error, stop_pipeline_after
 
 from lidar_slam.config import load_config
 from lidar_slam.io.trajectory import read_kitti_poses
@@ -148,24 +148,15 @@ def test_a_run_stopped_by_a_signal_resumes_from_where_it_stopped(tmp_path, monke
     """Ctrl-C (or a bad scan) writes a checkpoint of every frame so far, not only the periodic
     one (every 100 keyframes): --resume goes on from that frame and ends with the bytes of the
     run never stopped (poses, odometry, loops, covariances)."""
-    from lidar_slam import pipeline
     from lidar_slam.run import run_sequence
 
     files = ("poses_kitti.txt", "odometry_kitti.txt", "loops.csv", "covariances.csv")
     whole = run_sequence(SAMPLE, tmp_path / "whole", progress=False)
     assert whole.failure is None
-    process, seen = pipeline.Pipeline.process, []
-
-    def stopped_at_30(self, scan):
-        if len(seen) == 30:
-            raise KeyboardInterrupt
-        seen.append(scan.index)
-        return process(self, scan)
-
-    monkeypatch.setattr(pipeline.Pipeline, "process", stopped_at_30)
+    resume = stop_pipeline_after(monkeypatch, 30)
     first = run_sequence(SAMPLE, tmp_path / "run", progress=False)
     assert first.failure is not None and first.failure.exit_code == 130
-    monkeypatch.setattr(pipeline.Pipeline, "process", process)
+    resume()
     resumed = run_sequence(SAMPLE, tmp_path / "run", resume=True, progress=False)
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 30
     for name in files:
@@ -207,15 +198,7 @@ def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_
     from lidar_slam.errors import InputError
     from lidar_slam.run import checkpoint, run_sequence
 
-    process, seen = pipeline.Pipeline.process, []
-
-    def stopped_at_30(self, scan):
-        if len(seen) == 30:
-            raise KeyboardInterrupt
-        seen.append(scan.index)
-        return process(self, scan)
-
-    monkeypatch.setattr(pipeline.Pipeline, "process", stopped_at_30)
+    resume = stop_pipeline_after(monkeypatch, 30)
     out = tmp_path / "run"
     assert run_sequence(SAMPLE, out, progress=False).failure.exit_code == 130
     d = out / "checkpoint"
@@ -228,6 +211,6 @@ def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_
     manifest["files"][f"checkpoint/{manifest['state']}"] = checkpoint._whole_entry(buf.getvalue())
     checkpoint._write_manifest(d, {k: v for k, v in manifest.items()
                                    if k not in ("version", "sha256")})
-    monkeypatch.setattr(pipeline.Pipeline, "process", process)
+    resume()
     with pytest.raises(InputError, match="older lidar-slam.*--overwrite"):
         checkpoint.restore(out, pipeline.Pipeline(load_config(), out, resume=True))

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import stop_pipeline_after
 
 from lidar_slam import pipeline
 from lidar_slam.config import load_config
@@ -201,17 +202,9 @@ def test_a_run_stopped_while_skipped_scans_wait_resumes_to_the_same_bytes(trot_e
     seq = _with_empty_scans(trot_end, tmp_path / "gap", (30, 31))
     files = ("poses_kitti.txt", "odometry_kitti.txt", "covariances.csv")
     assert run_sequence(seq, tmp_path / "whole", progress=False).failure is None
-    process, seen = pipeline.Pipeline.process, []
-
-    def stopped_at_31(self, scan):
-        if len(seen) == 31:
-            raise KeyboardInterrupt
-        seen.append(scan.index)
-        return process(self, scan)
-
-    monkeypatch.setattr(pipeline.Pipeline, "process", stopped_at_31)
+    resume = stop_pipeline_after(monkeypatch, 31)
     assert run_sequence(seq, tmp_path / "run", progress=False).failure.exit_code == 130
-    monkeypatch.setattr(pipeline.Pipeline, "process", process)
+    resume()
     resumed = run_sequence(seq, tmp_path / "run", resume=True, progress=False)
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 31
     for name in files:

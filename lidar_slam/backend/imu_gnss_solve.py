@@ -368,12 +368,11 @@ def odometry_variance_robust(edges: list[BetweenFactor], poses: dict[int, np.nda
     keys, r_rot, r_h, r_v = _odometry_residuals(edges, poses)
     if not len(r_rot):
         return (1.0, 1.0, 1.0), {}
-    gate = ODOMETRY_OUTLIER_CHI2
     inlier = np.ones(len(keys), dtype=bool)
     for _ in range(10):
         f = _mean_factors(r_rot[inlier], r_h[inlier], r_v[inlier])
         q = r_rot / f[0] + r_h / f[1] + r_v / f[2]
-        now = q <= gate
+        now = q <= ODOMETRY_OUTLIER_CHI2
         if np.array_equal(now, inlier) or int(now.sum()) < MIN_INLIER_EDGES:
             break
         inlier = now

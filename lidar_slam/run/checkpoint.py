@@ -228,11 +228,9 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "loop_fit": np.array([[c.fitness, c.rmse_m] for c in constraints]).reshape(-1, 2),
         "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
         # the last frame's registered pose when its stamp pose is still extrapolated
-        # (Pipeline.unsettled): position, ref_s, stamp, T_world_ref
-        "unsettled": (np.zeros((0, 19)) if pipe.unsettled is None else np.array(
-            [[pipe.unsettled[0], pipe.unsettled[2], pipe.unsettled_stamp_s,
-              *np.ravel(pipe.unsettled[1][:4, :4])]])),
-        "unsettled_predicted": np.array(pipe.unsettled_predicted, dtype=float).reshape(-1, 2),
+        # (Pipeline.unsettled): position, ref_s, T_world_ref
+        "unsettled": (np.zeros((0, 18)) if pipe.unsettled is None else np.array(
+            [[pipe.unsettled[0], pipe.unsettled[2], *np.ravel(pipe.unsettled[1][:4, :4])]])),
         "backend_live": (pipe.backend.state() if pipe.backend is not None
                          else np.empty((0, 4, 4))),
         **{f"odo_{k}": v for k, v in odo.items()},
@@ -289,11 +287,8 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         # continued across the change would mix the two
         raise InputError(state, f"made by an older lidar-slam (keyframes of runs without an "
                          f"IMU kept otherwise); {_RERUN}")
-    for row in a.get("unsettled", np.zeros((0, 19))):
-        pipe.unsettled = (int(row[0]), np.array(row[3:]).reshape(4, 4), float(row[1]))
-        pipe.unsettled_stamp_s = float(row[2])
-    pipe.unsettled_predicted = [(int(i), float(t)) for i, t in
-                                a.get("unsettled_predicted", np.zeros((0, 2)))]
+    for row in a.get("unsettled", np.zeros((0, 18))):
+        pipe.unsettled = (int(row[0]), np.array(row[2:]).reshape(4, 4), float(row[1]))
     r.skipped_empty = meta["skipped_empty"]
     r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]
