@@ -136,6 +136,15 @@ class OdometryConfig(_Section):
     # the loop precision.
     refine_evidence: bool | Literal["with_imu"] = "with_imu"
     refine_evidence_z: Positive = 2.0
+    # Lidar only, a scan at or above refine_below_mps is refined too once the registered motion
+    # has stayed that fast for refine_fast_after_s (a vehicle at speed), and kept only when its
+    # held-out points prove it better (as refine_evidence). At speed kiss-icp's point-to-point
+    # match drifts in pitch on sparse rings (bank car05-vlp16, lidar only: 13 deg and 31 m of
+    # height in 40 s; stock kiss_icp_pipeline 15 deg), which a plane match against the last
+    # keyframes holds. Not with an IMU (its gravity holds the tilt; sim 07's speed), not on a
+    # hand-held flick kiss-icp read as a jump (refining those lost plaza-handheld-os0 0.21 ->
+    # 0.94 m). None: off. Decided on the bank (docs/bank.md, Decisions, 2026-12-05).
+    refine_fast_after_s: NonNegative | None = 1.0
     # Failure (lidar_slam.frontend.failure): failure_scans registered scans in a row with under
     # failure_min_fitness of their points within failure_inlier_m of the last keyframes' clouds
     # (failure_wide_min_fitness while kiss-icp's adaptive threshold is above failure_sigma_m)

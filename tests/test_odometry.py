@@ -118,7 +118,8 @@ def test_slow_scans_refined_against_keyframes_keep_the_turn_kiss_icp_loses(kitti
 
 def test_a_fast_car_is_not_refined_and_a_braking_one_is():
     """odometry.refine_below_mps (5 m/s) on the last motion over the period; 0 switches the
-    refinement off whatever the speed."""
+    refinement off whatever the speed (lidar only, a speed that lasts is refined on proof:
+    refine_fast_after_s, the test above)."""
     odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1}}))
     for step_m, period_s, slow in ((1.0, 0.1, False), (0.45, 0.1, True), (0.55, 0.1, False),
                                    (2.0, 0.5, True), (0.0, 0.1, True)):
@@ -129,6 +130,33 @@ def test_a_fast_car_is_not_refined_and_a_braking_one_is():
                                                        "refine_below_mps": 0.0}}))
     odo.last_delta = np.eye(4)
     assert odo.is_slow(0.1) is False
+
+
+@pytest.mark.shared_data
+def test_a_car_at_speed_is_refined_lidar_only_once_the_speed_has_lasted(kitti_gt, tmp_path):
+    """odometry.refine_fast_after_s (1 s): lidar only, scans at or above refine_below_mps are
+    refined (each kept only when its held-out points prove it) once the motion has stayed that
+    fast for a second, never before and never when it is off. KITTI 07 from frame 400: ~10 m/s."""
+    from lidar_slam import pipeline
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
+
+    kt = load_kitti_truth(kitti_gt, 7)
+    simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "seq", start=400,
+                      n_scans=16, Tr_cam_lidar=kt.Tr_cam_lidar)
+
+    def asked(**odo) -> int:
+        cfg = load_config(overrides={"loop": {"enabled": False},
+                                     "odometry": {"max_num_threads": 1, **odo}})
+        res = pipeline.run(open_source(tmp_path / "seq").scans(), cfg)
+        res.store.close()
+        n_refined, n_refused, n_unproven, n_skipped = res.refined_scans
+        return n_refined + n_refused + n_unproven + n_skipped
+
+    off = asked(refine_fast_after_s=None)  # scan 1 only: no motion known yet, so "slow"
+    assert off <= 1
+    # ten fast registrations (1 s) make the next scans refined: 11-15
+    assert asked() - off == 5
+    assert asked(refine_fast_after_s=5.0) == off  # 1.6 s never lasts 5 s
 
 
 @pytest.mark.shared_data

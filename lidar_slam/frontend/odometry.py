@@ -224,6 +224,7 @@ class Odometry:
         self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=o.refine_keyframes)
         self._target: PlaneTarget | None = None
         self.n_refined = 0
+        self._fast_s = 0.0  # registered time at or above refine_below_mps, in a row (s)
         self.n_refine_refused = 0  # by the correction gate (refine_max_correction_*)
         self.n_refine_unproven = 0  # by the held-out points' evidence, after the ICP
         self.n_refine_skipped = 0  # by the held-out points' evidence, before the ICP
@@ -301,13 +302,15 @@ class Odometry:
                                                 max_range=self.max_range_m)
 
     def register(self, points: np.ndarray, selected: bool = False, refine: bool = False,
-                 initial_guess: np.ndarray | None = None) -> np.ndarray | None:
+                 initial_guess: np.ndarray | None = None, prove: bool = False
+                 ) -> np.ndarray | None:
         """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
         (and no state change) when fewer than data.min_points are left after the range crop and
         the half-voxel selection (last_n_points says how many). selected: the points are already
         cropped and one per voxel of half the voxel size (see DeskewedScan). refine: refine the
         pose against the last keyframes' clouds (when there are any). initial_guess: where ICP
-        starts (the IMU's prediction), else kiss-icp's constant-velocity one."""
+        starts (the IMU's prediction), else kiss-icp's constant-velocity one. prove: the
+        refinement is kept only when the scan's held-out points prove it better."""
         if selected:
             frame_down = _vec(points)
         else:
@@ -328,7 +331,7 @@ class Odometry:
         new_pose = quantised(new_pose)
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
-            evidence = mode is True or (mode == "with_imu" and self.imu and predicted)
+            evidence = prove or mode is True or (mode == "with_imu" and self.imu and predicted)
             new_pose = self._refine(frame_down, new_pose, evidence, predicted)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
@@ -346,8 +349,15 @@ class Odometry:
         """Register a deskewed scan and return its pose at the stamp. initial_guess: the IMU's
         prediction of the pose at the scan's reference instant (else constant velocity)."""
         self._scan_index = scan.scan.index
-        T_world_ref = self.register(scan.points, scan.selected, self.is_slow(scan.period_s),
-                                    initial_guess)
+        slow = self.is_slow(scan.period_s)
+        fast = not slow and self._at_speed()
+        T_world_ref = self.register(scan.points, scan.selected, slow or fast, initial_guess,
+                                    prove=fast)
+        if T_world_ref is None or self.is_slow(scan.period_s) or \
+                self.cfg.odometry.refine_below_mps <= 0:
+            self._fast_s = 0.0
+        else:
+            self._fast_s += scan.period_s
         if T_world_ref is None:
             # The prediction is of the sweep's middle, like every registration: move it to the
             # stamp with the last registered scan's offset.
@@ -383,6 +393,13 @@ class Odometry:
         limit = self.cfg.odometry.refine_below_mps
         return limit > 0 and float(np.linalg.norm(self.last_delta[:3, 3])) < limit * period_s
 
+    def _at_speed(self) -> bool:
+        """Lidar only: whether the registered motion has stayed at or above
+        odometry.refine_below_mps for odometry.refine_fast_after_s (a vehicle at speed, not a
+        hand-held flick kiss-icp mistook for a jump)."""
+        after = self.cfg.odometry.refine_fast_after_s
+        return not self.imu and after is not None and self._fast_s >= after - 1e-9
+
     def predict(self, guess: np.ndarray | None = None) -> np.ndarray:
         """Constant-velocity prediction of the next pose (or guess, the IMU's); advances the
         state without a scan."""
@@ -405,7 +422,8 @@ class Odometry:
                 "map_points": np.asarray(self._map._point_cloud()),
                 "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
                                       self.n_refined, self.n_refine_refused,
-                                      self.n_refine_unproven, self.n_refine_skipped]),
+                                      self.n_refine_unproven, self.n_refine_skipped,
+                                      self._fast_s]),
                 **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
@@ -426,7 +444,8 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        refined = [int(v) for v in refined] + [0] * (4 - len(refined))  # older: fewer
+        refined = list(refined) + [0] * (5 - len(refined))  # older: fewer
         (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
-         self.n_refine_skipped) = refined
+         self.n_refine_skipped) = (int(v) for v in refined[:4])
+        self._fast_s = float(refined[4])
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)
