@@ -144,12 +144,16 @@ def test_a_car_at_speed_is_refined_lidar_only_once_the_speed_has_lasted(kitti_gt
     simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "seq", start=400,
                       n_scans=16, Tr_cam_lidar=kt.Tr_cam_lidar)
 
+    at_speed = []
+
     def asked(**odo) -> int:
         cfg = load_config(overrides={"loop": {"enabled": False},
                                      "odometry": {"max_num_threads": 1, **odo}})
         res = pipeline.run(open_source(tmp_path / "seq").scans(), cfg)
         res.store.close()
         n_refined, n_refused, n_unproven, n_skipped = res.refined_scans
+        at_speed.append(res.refined_at_speed)
+        assert res.refined_at_speed <= n_refined
         return n_refined + n_refused + n_unproven + n_skipped
 
     off = asked(refine_fast_after_s=None)  # scan 1 only: no motion known yet, so "slow"
@@ -157,6 +161,7 @@ def test_a_car_at_speed_is_refined_lidar_only_once_the_speed_has_lasted(kitti_gt
     # ten fast registrations (1 s) make the next scans refined: 11-15
     assert asked() - off == 5
     assert asked(refine_fast_after_s=5.0) == off  # 1.6 s never lasts 5 s
+    assert at_speed[0] == at_speed[2] == 0 and at_speed[1] >= 1  # summary.json counts them
 
 
 @pytest.mark.shared_data

@@ -225,6 +225,7 @@ class Odometry:
         self._target: PlaneTarget | None = None
         self.n_refined = 0
         self._fast_s = 0.0  # registered time at or above refine_below_mps, in a row (s)
+        self.n_refined_at_speed = 0  # of n_refined: for their lasting speed
         self.n_refine_refused = 0  # by the correction gate (refine_max_correction_*)
         self.n_refine_unproven = 0  # by the held-out points' evidence, after the ICP
         self.n_refine_skipped = 0  # by the held-out points' evidence, before the ICP
@@ -241,12 +242,13 @@ class Odometry:
         self._anchors.append((T_world_kf, points_kf))
         self._target = None
 
-    def _refine(self, frame_down, T_world_points: np.ndarray, evidence: bool, predicted: bool
-                ) -> np.ndarray:
+    def _refine(self, frame_down, T_world_points: np.ndarray, evidence: bool, predicted: bool,
+                at_speed: bool = False) -> np.ndarray:
         """T_world_points refined against the last keyframes, or kept: by the correction gate,
         or (odometry.refine_evidence) when the scan's held-out points do not prove it better.
         predicted: kiss-icp started from the IMU's prediction (then the matches reach
-        odometry.refine_imu_correspondence_m, not refine_max_correspondence_m)."""
+        odometry.refine_imu_correspondence_m, not refine_max_correspondence_m). at_speed: a
+        scan refined for its lasting speed (odometry.refine_fast_after_s), counted apart too."""
         o = self.cfg.odometry
         corr = (o.refine_imu_correspondence_m if predicted and self.imu
                 else o.refine_max_correspondence_m)
@@ -293,6 +295,7 @@ class Odometry:
                 self.n_refine_unproven += 1
                 return T_world_points
         self.n_refined += 1
+        self.n_refined_at_speed += at_speed
         return T
 
     def _new_threshold(self) -> None:
@@ -332,7 +335,7 @@ class Odometry:
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
             evidence = prove or mode is True or (mode == "with_imu" and self.imu and predicted)
-            new_pose = self._refine(frame_down, new_pose, evidence, predicted)
+            new_pose = self._refine(frame_down, new_pose, evidence, predicted, prove)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
@@ -423,7 +426,7 @@ class Odometry:
                 "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
                                       self.n_refined, self.n_refine_refused,
                                       self.n_refine_unproven, self.n_refine_skipped,
-                                      self._fast_s]),
+                                      self._fast_s, self.n_refined_at_speed]),
                 **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
@@ -444,8 +447,8 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        refined = list(refined) + [0] * (5 - len(refined))  # older: fewer
+        refined = list(refined) + [0] * (6 - len(refined))  # older: fewer
         (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
          self.n_refine_skipped) = (int(v) for v in refined[:4])
-        self._fast_s = float(refined[4])
+        self._fast_s, self.n_refined_at_speed = float(refined[4]), int(refined[5])
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)

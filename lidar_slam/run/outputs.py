@@ -219,6 +219,7 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["skipped_small_scans"] = result.skipped_small
     (summary["odometry_refined_scans"], summary["odometry_refine_refused"],
      summary["odometry_refine_unproven"], summary["odometry_refine_skipped"]) = result.refined_scans
+    summary["odometry_refined_at_speed"] = result.refined_at_speed
     # episodes of failed odometry (lidar_slam.frontend.failure), the scans they started at, and
     # the scans of every local-map reset
     summary["odometry_failures"] = len(result.failure_episodes)
