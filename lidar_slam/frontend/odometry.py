@@ -305,15 +305,16 @@ class Odometry:
                                                 max_range=self.max_range_m)
 
     def register(self, points: np.ndarray, selected: bool = False, refine: bool = False,
-                 initial_guess: np.ndarray | None = None, prove: bool = False
+                 initial_guess: np.ndarray | None = None, at_speed: bool = False
                  ) -> np.ndarray | None:
         """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
         (and no state change) when fewer than data.min_points are left after the range crop and
         the half-voxel selection (last_n_points says how many). selected: the points are already
         cropped and one per voxel of half the voxel size (see DeskewedScan). refine: refine the
         pose against the last keyframes' clouds (when there are any). initial_guess: where ICP
-        starts (the IMU's prediction), else kiss-icp's constant-velocity one. prove: the
-        refinement is kept only when the scan's held-out points prove it better."""
+        starts (the IMU's prediction), else kiss-icp's constant-velocity one. at_speed: refined
+        for a lasting speed (_at_speed): kept only when the scan's held-out points prove it
+        better, and counted apart."""
         if selected:
             frame_down = _vec(points)
         else:
@@ -334,8 +335,8 @@ class Odometry:
         new_pose = quantised(new_pose)
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
-            evidence = prove or mode is True or (mode == "with_imu" and self.imu and predicted)
-            new_pose = self._refine(frame_down, new_pose, evidence, predicted, prove)
+            evidence = at_speed or mode is True or (mode == "with_imu" and self.imu and predicted)
+            new_pose = self._refine(frame_down, new_pose, evidence, predicted, at_speed)
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
@@ -353,14 +354,11 @@ class Odometry:
         prediction of the pose at the scan's reference instant (else constant velocity)."""
         self._scan_index = scan.scan.index
         slow = self.is_slow(scan.period_s)
-        fast = not slow and self._at_speed()
-        T_world_ref = self.register(scan.points, scan.selected, slow or fast, initial_guess,
-                                    prove=fast)
-        if T_world_ref is None or self.is_slow(scan.period_s) or \
-                self.cfg.odometry.refine_below_mps <= 0:
-            self._fast_s = 0.0
-        else:
-            self._fast_s += scan.period_s
+        at_speed = not slow and self._at_speed()
+        T_world_ref = self.register(scan.points, scan.selected, slow or at_speed, initial_guess,
+                                    at_speed=at_speed)
+        fast = T_world_ref is not None and not self.is_slow(scan.period_s)  # its new motion
+        self._fast_s = self._fast_s + scan.period_s if fast else 0.0
         if T_world_ref is None:
             # The prediction is of the sweep's middle, like every registration: move it to the
             # stamp with the last registered scan's offset.
@@ -400,8 +398,9 @@ class Odometry:
         """Lidar only: whether the registered motion has stayed at or above
         odometry.refine_below_mps for odometry.refine_fast_after_s (a vehicle at speed, not a
         hand-held flick kiss-icp mistook for a jump)."""
-        after = self.cfg.odometry.refine_fast_after_s
-        return not self.imu and after is not None and self._fast_s >= after - 1e-9
+        o = self.cfg.odometry
+        return (not self.imu and o.refine_below_mps > 0 and o.refine_fast_after_s is not None
+                and self._fast_s >= o.refine_fast_after_s - 1e-9)
 
     def predict(self, guess: np.ndarray | None = None) -> np.ndarray:
         """Constant-velocity prediction of the next pose (or guess, the IMU's); advances the
