@@ -47,6 +47,10 @@ class RunResult:
     odom_information: dict[int, np.ndarray] = field(default_factory=dict)
     # keyframe id -> unit vector against gravity in the keyframe's frame (the IMU's), with an IMU
     kf_up: dict[int, np.ndarray] = field(default_factory=dict)
+    # keyframe id -> the node's instant minus its frame's stamp (s), for nodes not at the stamp
+    # (at the registered instant, the sweep's middle: _add_keyframe); None: not known (a run
+    # resumed from a checkpoint older than 2026-12-06)
+    kf_node_dt: dict[int, float] | None = field(default_factory=dict)
     loops: list = field(default_factory=list)  # LoopRecord rows for loops.csv
     skipped_empty: int = 0
     skipped_small: int = 0  # scans with fewer than data.min_points points in range
@@ -285,14 +289,19 @@ class Pipeline:
         pts, inten = deskewed.cloud(c.keyframes.cloud_voxel_m, c.data.min_range_m,
                                     min(c.data.max_range_m, c.map.max_range_m))
         T_node = odom.T_world_scan
-        if self._extrapolated(deskewed, odom):
+        at_ref = self._extrapolated(deskewed, odom)
+        if at_ref:
             T_node = odom.T_world_ref
         elif odom.registered:
             pts = transform_points(inverse(odom.T_ref_stamp), pts)
+            # the first scan: no motion known yet, its stamp pose is its registered one
+            at_ref = bool(np.array_equal(odom.T_ref_stamp, np.eye(4)))
         if not odom.registered:
             pts, inten = pts[:0], None
         kf = self.result.store.add(deskewed.scan.index, T_node, pts, inten,
                                    deskewed.scan.stamp_s)
+        if at_ref and deskewed.ref_s != 0.0 and self.result.kf_node_dt is not None:
+            self.result.kf_node_dt[kf.id] = float(deskewed.ref_s)
         if len(kf.points):
             self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
         up = self.inertial.up_in_lidar() if self.inertial is not None else None

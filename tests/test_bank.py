@@ -172,3 +172,31 @@ def test_lidar_slam_config_prefers_the_overlay_simulate_wrote(tmp_path):
     T = load_config(path).imu.T_lidar_imu_matrix()
     np.testing.assert_allclose(T[:3, 0], [0.0, 1.0, 0.0], atol=1e-12)  # yawed 90 deg
     np.testing.assert_allclose(T[:3, 3], plain.extrinsic[:3])
+
+
+def test_truth_at_carries_a_stamp_back_one_sweep_onto_the_previous_frame(tmp_path):
+    """The truth at a node's instant (bank.truth_at) from imu_truth.csv: carried back one full
+    period from frame k it lands on frame k-1's truth, with a turned, offset IMU whose clock
+    runs behind (node scores are only as right as this)."""
+    import dataclasses
+
+    from lidar_slam.config import ImuConfig
+    from lidar_slam.geometry import inverse, rotvec_from_matrix
+    from lidar_slam.sim.imu_gnss import ImuOptions
+    from lidar_slam.sim.motions import simulate_motion
+
+    b = bank()
+    spec = dataclasses.replace(next(r for r in b.BANK if r.name == "car08-xt32"),
+                               name="walk", offset_s=0.02)
+    imu = ImuOptions(T_lidar_imu=ImuConfig(T_lidar_imu=list(spec.extrinsic)).T_lidar_imu_matrix(),
+                     time_offset_s=spec.offset_s)
+    small = dataclasses.replace(SENSORS["os1-64"], n_azimuth=256)
+    path = tmp_path / "walk"
+    simulate_motion(path, "handheld", "office", 110, 1.2, small, imu=imu, stamp="end")
+    seq = importlib.import_module("tools.benchmark").load_sequence(str(path), 0, None, {})
+    for k in (3, 7, 11):
+        T = b.truth_at(path, spec, seq, k, float(seq.stamps[k - 1] - seq.stamps[k]))
+        E = inverse(seq.gt[k - 1]) @ T
+        assert np.degrees(np.linalg.norm(rotvec_from_matrix(E[:3, :3]))) < 0.02
+        assert np.linalg.norm(E[:3, 3]) < 1e-3
+    assert np.array_equal(b.truth_at(path, spec, seq, 5, 0.0), seq.gt[5])

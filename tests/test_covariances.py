@@ -20,7 +20,7 @@ from lidar_slam.config import load_config
 from lidar_slam.geometry import inverse
 from lidar_slam.io.sources import open_source
 from lidar_slam.io.trajectory import read_kitti_poses
-from lidar_slam.run.outputs import COVARIANCE_COLUMNS, read_covariances
+from lidar_slam.run.outputs import COVARIANCE_COLUMNS, read_covariances, read_node_dt
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_scans"
 
@@ -96,8 +96,12 @@ def test_a_kept_loop_shrinks_the_covariance_and_a_rejected_one_does_not():
 def test_covariances_csv_has_one_row_per_keyframe_with_21_values(tmp_path):
     run = _run(SAMPLE, tmp_path / "run", "--n-scans", "30")
     header = (run / "covariances.csv").read_text().splitlines()[0].split(",")
-    assert header == ["frame", "keyframe", *COVARIANCE_COLUMNS] and len(COVARIANCE_COLUMNS) == 21
+    assert header == ["frame", "keyframe", "node_dt_s", *COVARIANCE_COLUMNS]
+    assert len(COVARIANCE_COLUMNS) == 21
     covs = read_covariances(run / "covariances.csv")
+    # every node at its frame's stamp but keyframe 0's, at its sweep's middle (no motion known)
+    dts = read_node_dt(run / "covariances.csv")
+    assert dts[0] != 0.0 and set(v for f, v in dts.items() if f != 0) == {0.0}
     manifest_kf = np.loadtxt(run / "covariances.csv", delimiter=",", skiprows=1)[:, 1]
     assert list(manifest_kf) == list(range(len(covs))) and 0 in covs
     for cov in covs.values():

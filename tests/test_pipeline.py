@@ -114,6 +114,9 @@ def test_sweep_end_stamps_lie_between_two_registrations_without_an_imu(trot_end)
     i = res.indices.index(int(table["frame_index"][k]))
     node_to_stamp = inverse(table["T"][k]) @ P[i]
     assert 0.005 < np.linalg.norm(node_to_stamp[:3, 3]) < 0.2
+    # and the run says so (covariances.csv node_dt_s): every node at its sweep's middle
+    assert sorted(res.kf_node_dt) == list(table["id"])
+    assert np.allclose(list(res.kf_node_dt.values()), -0.05, atol=1e-3)
     res.store.close()
 
 

@@ -28,7 +28,9 @@ the truth, lidar_slam.eval.metrics.scale_excess); loop stage precision
 (accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted), the loops the
 final solve kept (loops.csv's backend column) and the same precision over those; the mean
 NEES of keyframe positions (covariances.csv against the truth; 3 when consistent); frames/s,
-wall time (s) and peak RSS (MB) of the whole process.
+wall time (s) and peak RSS (MB) of the whole process. Loop precision and NEES are scored at the
+graph nodes' instants (node_scores; the JSON keeps the same at the frames' stamps as
+*_stamps) where the run's covariances.csv says where its nodes are.
 """
 
 from __future__ import annotations
@@ -234,6 +236,113 @@ def position_nees(poses: np.ndarray, gt: np.ndarray, covariances: dict[int, np.n
     return np.asarray(out)
 
 
+def truth_at(seq_path: Path, spec: Spec, seq: benchmark.Sequence, frame: int, dt: float
+             ) -> np.ndarray:
+    """The truth of the lidar at frame's stamp + dt (s, within a sweep), in seq.gt's frame:
+    carried from the stamp by the simulator's noise-free IMU (imu_truth.csv, on the lidar's
+    clock: body rates in the IMU frame, the IMU's velocity in the world; T_world_seq.txt), not
+    interpolated between two frames (a hand-held flick turns at 180 deg/s within one sweep)."""
+    from scipy.spatial.transform import Rotation
+
+    from lidar_slam.config import ImuConfig
+
+    if dt == 0.0:
+        return seq.gt[frame]
+    cache = _TRUTH_CACHE.get(seq_path)
+    if cache is None:
+        im = np.loadtxt(seq_path / "imu_truth.csv", delimiter=",", skiprows=1, ndmin=2)
+        T_ws = np.eye(4)
+        T_ws[:3] = np.loadtxt(seq_path / "T_world_seq.txt").reshape(3, 4)
+        T_li = ImuConfig(T_lidar_imu=list(spec.extrinsic)).T_lidar_imu_matrix()
+        cache = _TRUTH_CACHE[seq_path] = (im[:, 0], im[:, 1:4], im[:, 13:16], T_ws, T_li)
+    t_imu, w, v, T_ws, T_li = cache
+    s = float(seq.stamps[seq.start + frame])
+    tt = np.linspace(s, s + dt, 41)
+    wi = np.stack([np.interp(tt, t_imu, w[:, j]) for j in range(3)], 1)
+    vi = np.stack([np.interp(tt, t_imu, v[:, j]) for j in range(3)], 1)
+    steps = 0.5 * (wi[1:] + wi[:-1]) * np.diff(tt)[:, None]
+    R = np.eye(3)
+    for rv in steps:
+        R = R @ Rotation.from_rotvec(rv).as_matrix()
+    # the first frame in the world: seq.gt is relative to the source's frame `start`
+    R_first_world = (T_ws @ seq.ground_truth[seq.start])[:3, :3].T
+    T_imu = seq.gt[frame] @ T_li
+    out = np.eye(4)
+    out[:3, :3] = T_imu[:3, :3] @ R
+    out[:3, 3] = T_imu[:3, 3] + R_first_world @ np.trapezoid(vi, tt, axis=0)
+    return out @ np.linalg.inv(T_li)
+
+
+_TRUTH_CACHE: dict[Path, tuple] = {}
+
+
+def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) -> dict:
+    """Loop precision and NEES at the keyframes' graph nodes (covariances.csv node_dt_s: keyframe
+    0 and, lidar only with sweep-end stamps, every keyframe is at its sweep's middle): a loop
+    is measured between two nodes (graph.g2o), a covariance is of a node (keyframes/
+    map_poses.bin), so each is scored against the truth at the nodes' instants; at the stamps
+    (the other columns) a node's half-sweep offset, extrapolated or interpolated along the
+    odometry, is scored as if it were the loop's or the solve's. Keyframe 0, the anchor, is
+    left out of the NEES. {} for a run that does not say where its nodes are."""
+    import csv
+
+    from lidar_slam.eval import metrics
+    from lidar_slam.io.g2o import read_g2o
+    from lidar_slam.map.keyframes import TABLE_DTYPE
+    from lidar_slam.run.outputs import read_covariances, read_node_dt
+
+    cov_path, g2o, table_path = (out / "covariances.csv", out / "graph.g2o",
+                                 out / "keyframes" / "table.bin")
+    if not cov_path.is_file() or not table_path.is_file():
+        return {}
+    node_dt = read_node_dt(cov_path)
+    if not node_dt or any(np.isnan(v) for v in node_dt.values()):
+        return {}
+    table = np.fromfile(table_path, dtype=TABLE_DTYPE)
+    frames = table["frame_index"] - seq.start
+    truth = {int(f): truth_at(seq_path, spec, seq, int(f), dt) for f, dt in node_dt.items()}
+    res: dict = {}
+    # NEES of the final nodes' positions (map_poses.bin: T_map_kf, map = the first frame)
+    map_poses = out / "keyframes" / "map_poses.bin"
+    if map_poses.is_file():
+        M = np.fromfile(map_poses, dtype="<f8").reshape(-1, 4, 4)
+        covs = read_covariances(cov_path)
+        nees = []
+        for k, f in enumerate(frames[:len(M)]):
+            f = int(f)
+            if k == 0 or f not in covs or f not in truth:
+                continue
+            e = M[k, :3, :3].T @ (truth[f][:3, 3] - M[k, :3, 3])
+            nees.append(float(e @ np.linalg.solve(covs[f][3:, 3:], e)))
+        if nees:
+            res["nees_nodes_mean"] = float(np.mean(nees))
+    # loops between the nodes: graph.g2o's (match, query) edges that are not odometry
+    loops_csv = out / "loops.csv"
+    if g2o.is_file() and loops_csv.is_file():
+        edges = {(int(frames[e.j]), int(frames[e.i])): e.T_i_j
+                 for e in read_g2o(g2o).edges if abs(e.j - e.i) != 1}
+        with loops_csv.open(newline="") as fh:
+            acc = [(int(r["query_frame"]) - seq.start, int(r["match_frame"]) - seq.start)
+                   for r in csv.DictReader(fh) if r["accepted"].strip() == "1"]
+        if acc and all(p in edges for p in acc):
+            gt = seq.gt.copy()
+            pairs = np.array(acc, dtype=np.int64)
+            ok = []
+            for q, m in acc:  # each loop against the truth at its two nodes
+                gt[q], gt[m] = truth.get(q, seq.gt[q]), truth.get(m, seq.gt[m])
+                s = metrics.loop_precision_recall(np.array([[q, m]]), edges[(q, m)][None], gt,
+                                                  max_trans_err_m=LOOP_TRANS_M,
+                                                  max_rot_err_deg=LOOP_ROT_DEG, max_dist_m=3.0)
+                ok.append(bool(s.correct[0]))
+                gt[q], gt[m] = seq.gt[q], seq.gt[m]
+            res["loops_precise_nodes"] = int(sum(ok))
+            res["loop_precision_nodes"] = float(np.mean(ok)) if len(pairs) else None
+            kept = backend_kept(loops_csv)
+            if kept is not None and len(kept) == len(ok) and kept.any():
+                res["loop_precision_kept_nodes"] = float(np.asarray(ok)[kept].mean())
+    return res
+
+
 def backend_kept(loops_csv: Path) -> np.ndarray | None:
     """Per accepted loop of a lidar-slam loops.csv (file order), whether the final solve kept
     it (its `backend` column is not "rejected"); None without that column."""
@@ -247,9 +356,12 @@ def backend_kept(loops_csv: Path) -> np.ndarray | None:
     return np.array([r["backend"].strip() != "rejected" for r in rows], dtype=bool)
 
 
-def lidar_slam_extras(seq: benchmark.Sequence, out: Path) -> dict:
+def lidar_slam_extras(seq: benchmark.Sequence, out: Path, seq_path: Path | None = None,
+                      spec: Spec | None = None) -> dict:
     """Odometry-only ATE, final / odometry, loop precision at LOOP_TRANS_M / LOOP_ROT_DEG and
-    the keyframes' position NEES of one lidar-slam run folder."""
+    the keyframes' position NEES of one lidar-slam run folder. With seq_path and spec, loop
+    precision and NEES are at the graph nodes (node_scores) where the run says where they
+    are; the same at the frames' stamps stay as *_stamps."""
     from lidar_slam.eval import metrics
     from lidar_slam.io.trajectory import read_kitti_poses
     from lidar_slam.run.outputs import read_covariances
@@ -288,6 +400,15 @@ def lidar_slam_extras(seq: benchmark.Sequence, out: Path) -> dict:
         if len(nees):
             res.update(nees_mean=float(nees.mean()), nees_median=float(np.median(nees)),
                        nees_keyframes=len(nees))
+    if seq_path is not None and spec is not None and seq.gt is not None:
+        nodes = node_scores(seq_path, spec, seq, out)
+        for key, node_key, stamp_key in (
+                ("loop_precision", "loop_precision_nodes", "loop_precision_stamps"),
+                ("loop_precision_kept", "loop_precision_kept_nodes", "loop_precision_kept_stamps"),
+                ("nees_mean", "nees_nodes_mean", "nees_stamps_mean")):
+            if node_key in nodes and key in res:
+                res[stamp_key], res[key] = res[key], nodes[node_key]
+        res.update(nodes)
     return res
 
 
@@ -370,7 +491,7 @@ def run_sequence(spec: Spec, seq_path: Path, work: Path, systems: list[str],
                  "wall_s": row.wall_s[-1] if row.wall_s else None,
                  "peak_mb": max(row.peak_mb) if row.peak_mb else None}
         if s in benchmark.OURS and not row.error:
-            cells.update(lidar_slam_extras(seq, seq_dir / s))
+            cells.update(lidar_slam_extras(seq, seq_dir / s, seq_path, spec))
         out[s] = cells
     return out
 
@@ -496,8 +617,9 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
           "ATE: RMSE after rigid alignment; worst frame: the largest aligned error; loop "
           f"precision: accepted loops within {LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg of the "
           "truth over accepted; NEES: mean over keyframes of the position error's "
-          "e' P^-1 e (3 when the covariances are consistent); frames/s, wall, peak MB: the "
-          "whole process.", "", "## The bank", "", spec_table(status)]
+          "e' P^-1 e (3 when the covariances are consistent); both at the graph nodes' "
+          "instants (covariances.csv node_dt_s; the JSON's *_stamps: at the frames' stamps); "
+          "frames/s, wall, peak MB: the whole process.", "", "## The bank", "", spec_table(status)]
     summaries = {}
     md.append("## Results\n")
     for system in systems:

@@ -227,6 +227,8 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "loop_info": np.array([c.information for c in constraints]).reshape(-1, 6, 6),
         "loop_fit": np.array([[c.fitness, c.rmse_m] for c in constraints]).reshape(-1, 2),
         "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
+        "kf_node_dt": (np.full((1, 2), np.nan) if r.kf_node_dt is None else
+                       np.array(sorted(r.kf_node_dt.items()), np.float64).reshape(-1, 2)),
         # the last frame's registered pose when its stamp pose is still extrapolated
         # (Pipeline.unsettled): position, ref_s, T_world_ref
         "unsettled": (np.zeros((0, 18)) if pipe.unsettled is None else np.array(
@@ -282,6 +284,9 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.odom_poses = list(a["odom_poses"])
     r.frame_kf = [int(k) for k in a["frame_kf"]]
     r.kf_up = {int(row[0]): np.array(row[1:]) for row in a.get("kf_up", np.zeros((0, 4)))}
+    node_dt = a.get("kf_node_dt", np.full((1, 2), np.nan))  # NaN: not known (older checkpoint)
+    r.kf_node_dt = (None if np.isnan(node_dt).any() else
+                    {int(k): float(dt) for k, dt in node_dt})
     if "unsettled" not in a and pipe.inertial is None and meta["frames"]:
         # before 8d17648 a sweep-end scan's keyframe was at its stamp, now at mid-sweep: a run
         # continued across the change would mix the two

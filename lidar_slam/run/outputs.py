@@ -80,30 +80,46 @@ COVARIANCE_COLUMNS = tuple(f"{TANGENT[i]}_{TANGENT[j]}" for i in range(6) for j 
 
 
 def write_covariances(path: Path, result: RunResult) -> None:
-    """covariances.csv: per keyframe its input frame, its id and the 21 upper-triangle values
-    (row by row) of the 6x6 marginal covariance of the final solve (rotation first, rad^2 and
-    m^2, in the keyframe's frame: the true pose is T_world_kf @ Exp(xi), xi ~ N(0, cov))."""
+    """covariances.csv: per keyframe its input frame, its id, node_dt_s (the instant its graph
+    node and covariance are at, minus the frame's stamp: 0, or the sweep's middle for keyframe
+    0 and without an IMU for sweep-end stamps; nan when not known) and the 21 upper-triangle
+    values (row by row) of the 6x6 marginal covariance of the final solve (rotation first,
+    rad^2 and m^2, in the keyframe's frame: the true pose is T_world_kf @ Exp(xi),
+    xi ~ N(0, cov))."""
     table = result.store.table()
     iu = np.triu_indices(6)
+    dts = result.kf_node_dt
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         rows = csv.writer(fh)
-        rows.writerow(["frame", "keyframe", *COVARIANCE_COLUMNS])
+        rows.writerow(["frame", "keyframe", "node_dt_s", *COVARIANCE_COLUMNS])
         for kf_id, frame in zip(table["id"], table["frame_index"], strict=True):
             cov = result.kf_covariances.get(int(kf_id))
             if cov is not None:
-                rows.writerow([int(frame), int(kf_id), *(f"{v:.9e}" for v in cov[iu])])
+                dt = "nan" if dts is None else f"{dts.get(int(kf_id), 0.0):.6f}"
+                rows.writerow([int(frame), int(kf_id), dt, *(f"{v:.9e}" for v in cov[iu])])
 
 
 def read_covariances(path: Path) -> dict[int, np.ndarray]:
-    """covariances.csv back as {frame: 6x6 covariance} (see write_covariances)."""
+    """covariances.csv back as {frame: 6x6 covariance} (see write_covariances; also the files
+    written before node_dt_s)."""
     data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     out = {}
     iu = np.triu_indices(6)
     for row in data:
         cov = np.zeros((6, 6))
-        cov[iu] = row[2:]
+        cov[iu] = row[-21:]
         out[int(row[0])] = cov + np.triu(cov, 1).T
     return out
+
+
+def read_node_dt(path: Path) -> dict[int, float]:
+    """covariances.csv's node_dt_s as {frame: s} (empty for a file written before it; nan where
+    the run did not know it)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows or "node_dt_s" not in rows[0]:
+        return {}
+    return {int(r["frame"]): float(r["node_dt_s"]) for r in rows}
 
 
 def write_geo_poses(out_dir: Path, geo: GeoReference, frames: np.ndarray, stamps_s: np.ndarray,
