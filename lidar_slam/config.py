@@ -82,6 +82,10 @@ class OdometryConfig(_Section):
     initial_threshold_m: Positive = 2.0
     min_motion_m: NonNegative = 0.1
     max_num_iterations: Count = 500
+    # kiss-icp's iterations when it starts from the IMU's prediction (within centimetres): past
+    # this it creeps along a street's weak axis on noise (bank car rows with the IMU: better or
+    # the same at 30, every walk, trot and flight the same bytes; docs/bank.md). None: as above.
+    imu_max_num_iterations: Count | None = 30
     convergence_criterion: Positive = 1e-4
     # kiss-icp's TBB threads (0: every core). With more than one, its correspondence search and
     # normal-equation sums run in a varying order (poses ~2e-15 apart, which a run's chaos

@@ -202,6 +202,12 @@ class Odometry:
         self._registration = kp._Registration(max_num_iterations=o.max_num_iterations,
                                               convergence_criterion=o.convergence_criterion,
                                               max_num_threads=o.max_num_threads)
+        # from the IMU's prediction (odometry.imu_max_num_iterations): fewer iterations
+        self._from_imu = self._registration if o.imu_max_num_iterations is None else \
+            kp._Registration(max_num_iterations=min(o.imu_max_num_iterations,
+                                                    o.max_num_iterations),
+                             convergence_criterion=o.convergence_criterion,
+                             max_num_threads=o.max_num_threads)
         self._new_threshold()
         # kiss-icp's range crop with its deskew switched off: ours runs before. Its thread count
         # is the registration's: kiss-icp's Registration and Preprocessor each set TBB's
@@ -329,7 +335,8 @@ class Odometry:
         predicted = initial_guess is not None  # by the IMU
         if initial_guess is None:
             initial_guess = self.last_pose @ self.last_delta
-        new_pose = self._registration._align_points_to_map(
+        registration = self._from_imu if predicted else self._registration
+        new_pose = registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
         new_pose = quantised(new_pose)
