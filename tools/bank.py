@@ -318,13 +318,15 @@ def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) 
             res["nees_nodes_mean"] = float(np.mean(nees))
     # loops between the nodes: graph.g2o's (match, query) edges that are not odometry
     loops_csv = out / "loops.csv"
-    if g2o.is_file() and loops_csv.is_file():
-        edges = {(int(frames[e.j]), int(frames[e.i])): e.T_i_j
-                 for e in read_g2o(g2o).edges if abs(e.j - e.i) != 1}
+    acc = []
+    if loops_csv.is_file():
         with loops_csv.open(newline="") as fh:
             acc = [(int(r["query_frame"]) - seq.start, int(r["match_frame"]) - seq.start)
                    for r in csv.DictReader(fh) if r["accepted"].strip() == "1"]
-        if acc and all(p in edges for p in acc):
+    if acc and g2o.is_file():
+        edges = {(int(frames[e.j]), int(frames[e.i])): e.T_i_j
+                 for e in read_g2o(g2o).edges if abs(e.j - e.i) != 1}
+        if all(p in edges for p in acc):
             gt = seq.gt.copy()
             pairs = np.array(acc, dtype=np.int64)
             ok = []
