@@ -361,3 +361,26 @@ def test_summary_counts_each_slow_scan_refinement_outcome(tmp_path):
     counts = [s[k] for k in ("odometry_refined_scans", "odometry_refine_refused",
                              "odometry_refine_unproven", "odometry_refine_skipped")]
     assert all(isinstance(c, int) and c >= 0 for c in counts) and sum(counts) > 0, counts
+
+
+def test_kiss_icp_iterations_are_capped_only_from_the_imus_prediction(kitti16):
+    """odometry.imu_max_num_iterations: a scan started from the IMU's prediction stops there (one
+    iteration leaves a 0.3 m-off start short of where 500 converge); a constant-velocity start
+    keeps kiss-icp's max_num_iterations."""
+    scans = [s.points for s in open_source(kitti16).scans(0, 2)]
+
+    def second(cap, guess_offset_m):
+        odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
+                                                           "imu_max_num_iterations": cap}}),
+                       imu=True)
+        odo.register(scans[0])
+        guess = None
+        if guess_offset_m is not None:
+            guess = np.eye(4)
+            guess[:3, 3] = [0.8 + guess_offset_m, guess_offset_m, 0.0]  # the car moves ~0.8 m
+        return odo.register(scans[1], initial_guess=guess)
+
+    converged = second(None, 0.3)
+    capped = second(1, 0.3)
+    assert np.linalg.norm(capped[:3, 3] - converged[:3, 3]) > 0.01
+    np.testing.assert_array_equal(second(1, None), second(None, None))
