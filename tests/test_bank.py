@@ -123,7 +123,7 @@ def test_system_table_has_a_row_per_sequence_then_median_and_worst():
 
 
 def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monkeypatch):
-    """A 12-scan walk in the office stands in for the bank (one row, lidar-slam only)."""
+    """A 30-scan walk in the office stands in for the bank (one row, lidar-slam only)."""
     pytest.importorskip("psutil")
     b = bank()
     spec = next(r for r in b.BANK if r.name == "office-handheld-os1")
@@ -133,7 +133,7 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     from lidar_slam.sim.motions import simulate_motion
 
     small = dataclasses.replace(SENSORS["os1-64"], n_azimuth=512)
-    simulate_motion(tmp_path / "bank" / spec.name, "handheld", "office", spec.seed, 1.2, small,
+    simulate_motion(tmp_path / "bank" / spec.name, "handheld", "office", spec.seed, 3.0, small,
                     imu=ImuOptions())
     monkeypatch.setattr(b, "BANK", (spec,))
     out = tmp_path / "docs" / "bank.json"
@@ -142,15 +142,17 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     assert code == 0
     data = json.loads(out.read_text())
     cells = data["results"][spec.name]["lidar-slam"]
-    assert cells["error"] is None and cells["frames"] == 12
+    assert cells["error"] is None and cells["frames"] == 30
     assert 0.0 <= cells["ate_m"] < 0.2 and cells["odom_ate_m"] is not None
+    # the NEES at the graph nodes (covariances.csv node_dt_s), the stamps' kept beside it
+    assert cells["nees_mean"] == cells["nees_nodes_mean"] and "nees_stamps_mean" in cells
     assert data["command"].startswith("python tools/bank.py run --root")
     md = out.with_suffix(".md").read_text()
     assert md.splitlines()[2].startswith("`python tools/bank.py run")
     assert f"| {spec.name} | os1-64 | office | handheld | start |" in md
     assert "| **median** |" in md and "| **worst** |" in md
     assert len(read_kitti_poses(tmp_path / "bank" / "runs" / spec.name / "lidar-slam"
-                                / "poses_kitti.txt")) == 12
+                                / "poses_kitti.txt")) == 30
 
 
 def test_lidar_slam_config_prefers_the_overlay_simulate_wrote(tmp_path):
