@@ -242,9 +242,8 @@ def truth_at(seq_path: Path, spec: Spec, seq: benchmark.Sequence, frame: int, dt
     carried from the stamp by the simulator's noise-free IMU (imu_truth.csv, on the lidar's
     clock: body rates in the IMU frame, the IMU's velocity in the world; T_world_seq.txt), not
     interpolated between two frames (a hand-held flick turns at 180 deg/s within one sweep)."""
-    from scipy.spatial.transform import Rotation
-
     from lidar_slam.config import ImuConfig
+    from lidar_slam.geometry import matrix_from_rotvec
 
     if dt == 0.0:
         return seq.gt[frame]
@@ -263,7 +262,7 @@ def truth_at(seq_path: Path, spec: Spec, seq: benchmark.Sequence, frame: int, dt
     steps = 0.5 * (wi[1:] + wi[:-1]) * np.diff(tt)[:, None]
     R = np.eye(3)
     for rv in steps:
-        R = R @ Rotation.from_rotvec(rv).as_matrix()
+        R = R @ matrix_from_rotvec(rv)
     # the first frame in the world: seq.gt is relative to the source's frame `start`
     R_first_world = (T_ws @ seq.ground_truth[seq.start])[:3, :3].T
     T_imu = seq.gt[frame] @ T_li
@@ -286,7 +285,7 @@ def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) 
     left out of the NEES. {} for a run that does not say where its nodes are."""
     import csv
 
-    from lidar_slam.eval import metrics
+    from lidar_slam.geometry import inverse, rotation_angle_deg
     from lidar_slam.io.g2o import read_g2o
     from lidar_slam.map.keyframes import TABLE_DTYPE
     from lidar_slam.run.outputs import read_covariances, read_node_dt
@@ -299,14 +298,15 @@ def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) 
     if not node_dt or any(np.isnan(v) for v in node_dt.values()):
         return {}
     table = np.fromfile(table_path, dtype=TABLE_DTYPE)
-    frames = table["frame_index"] - seq.start
-    truth = {int(f): truth_at(seq_path, spec, seq, int(f), dt) for f, dt in node_dt.items()}
+    frames = table["frame_index"] - seq.start  # positions in the slice, as seq.gt's
+    truth = {f - seq.start: truth_at(seq_path, spec, seq, f - seq.start, dt)
+             for f, dt in node_dt.items()}
     res: dict = {}
     # NEES of the final nodes' positions (map_poses.bin: T_map_kf, map = the first frame)
     map_poses = out / "keyframes" / "map_poses.bin"
     if map_poses.is_file():
         M = np.fromfile(map_poses, dtype="<f8").reshape(-1, 4, 4)
-        covs = read_covariances(cov_path)
+        covs = {f - seq.start: c for f, c in read_covariances(cov_path).items()}
         nees = []
         for k, f in enumerate(frames[:len(M)]):
             f = int(f)
@@ -327,18 +327,14 @@ def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) 
         edges = {(int(frames[e.j]), int(frames[e.i])): e.T_i_j
                  for e in read_g2o(g2o).edges if abs(e.j - e.i) != 1}
         if all(p in edges for p in acc):
-            gt = seq.gt.copy()
-            pairs = np.array(acc, dtype=np.int64)
             ok = []
             for q, m in acc:  # each loop against the truth at its two nodes
-                gt[q], gt[m] = truth.get(q, seq.gt[q]), truth.get(m, seq.gt[m])
-                s = metrics.loop_precision_recall(np.array([[q, m]]), edges[(q, m)][None], gt,
-                                                  max_trans_err_m=LOOP_TRANS_M,
-                                                  max_rot_err_deg=LOOP_ROT_DEG, max_dist_m=3.0)
-                ok.append(bool(s.correct[0]))
-                gt[q], gt[m] = seq.gt[q], seq.gt[m]
+                E = inverse(inverse(truth.get(m, seq.gt[m])) @ truth.get(q, seq.gt[q])) \
+                    @ edges[(q, m)]
+                ok.append(bool(np.linalg.norm(E[:3, 3]) <= LOOP_TRANS_M
+                               and rotation_angle_deg(E) <= LOOP_ROT_DEG))
             res["loops_precise_nodes"] = int(sum(ok))
-            res["loop_precision_nodes"] = float(np.mean(ok)) if len(pairs) else None
+            res["loop_precision_nodes"] = float(np.mean(ok))
             kept = backend_kept(loops_csv)
             if kept is not None and len(kept) == len(ok) and kept.any():
                 res["loop_precision_kept_nodes"] = float(np.asarray(ok)[kept].mean())
