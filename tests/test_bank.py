@@ -146,6 +146,10 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     assert 0.0 <= cells["ate_m"] < 0.2 and cells["odom_ate_m"] is not None
     # the NEES at the graph nodes (covariances.csv node_dt_s), the stamps' kept beside it
     assert cells["nees_mean"] == cells["nees_nodes_mean"] and "nees_stamps_mean" in cells
+    # every NEES figure from one place (the nodes'), keyframe 0 (the anchor) left out of both
+    assert cells["nees_keyframes"] == cells["nees_nodes_keyframes"] == \
+        cells["nees_stamps_keyframes"]
+    assert cells["nees_median"] == cells["nees_nodes_median"]
     assert data["command"].startswith("python tools/bank.py run --root")
     md = out.with_suffix(".md").read_text()
     assert md.splitlines()[2].startswith("`python tools/bank.py run")
@@ -176,10 +180,10 @@ def test_lidar_slam_config_prefers_the_overlay_simulate_wrote(tmp_path):
     np.testing.assert_allclose(T[:3, 3], plain.extrinsic[:3])
 
 
-def test_truth_at_carries_a_stamp_back_one_sweep_onto_the_previous_frame(tmp_path):
-    """The truth at a node's instant (bank.truth_at) from imu_truth.csv: carried back one full
-    period from frame k it lands on frame k-1's truth, with a turned, offset IMU whose clock
-    runs behind (node scores are only as right as this)."""
+def test_truth_at_carries_a_stamp_one_sweep_onto_the_neighbouring_frames(tmp_path):
+    """The truth at a node's instant (bank.truth_at) from imu_truth.csv: carried back (or on)
+    one full period from frame k it lands on frame k-1's (k+1's) truth, with a turned, offset
+    IMU whose clock runs behind (node scores are only as right as this)."""
     import dataclasses
 
     from lidar_slam.config import ImuConfig
@@ -196,9 +200,9 @@ def test_truth_at_carries_a_stamp_back_one_sweep_onto_the_previous_frame(tmp_pat
     path = tmp_path / "walk"
     simulate_motion(path, "handheld", "office", 110, 1.2, small, imu=imu, stamp="end")
     seq = importlib.import_module("tools.benchmark").load_sequence(str(path), 0, None, {})
-    for k in (3, 7, 11):
-        T = b.truth_at(path, spec, seq, k, float(seq.stamps[k - 1] - seq.stamps[k]))
-        E = inverse(seq.gt[k - 1]) @ T
+    for k, j in ((3, 2), (7, 6), (11, 10), (3, 4), (7, 8)):
+        T = b.truth_at(path, spec, seq, k, float(seq.stamps[j] - seq.stamps[k]))
+        E = inverse(seq.gt[j]) @ T
         assert np.degrees(np.linalg.norm(rotvec_from_matrix(E[:3, :3]))) < 0.02
         assert np.linalg.norm(E[:3, 3]) < 1e-3
     assert np.array_equal(b.truth_at(path, spec, seq, 5, 0.0), seq.gt[5])

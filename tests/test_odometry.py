@@ -369,7 +369,7 @@ def test_kiss_icp_iterations_are_capped_only_from_the_imus_prediction(kitti16):
     keeps kiss-icp's max_num_iterations."""
     scans = [s.points for s in open_source(kitti16).scans(0, 2)]
 
-    def second(cap, guess_offset_m):
+    def second(cap, guess_offset_m, capped=True):
         odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
                                                            "imu_max_num_iterations": cap}}),
                        imu=True)
@@ -378,9 +378,11 @@ def test_kiss_icp_iterations_are_capped_only_from_the_imus_prediction(kitti16):
         if guess_offset_m is not None:
             guess = np.eye(4)
             guess[:3, 3] = [0.8 + guess_offset_m, guess_offset_m, 0.0]  # the car moves ~0.8 m
-        return odo.register(scans[1], initial_guess=guess)
+        return odo.register(scans[1], initial_guess=guess, capped=capped)
 
     converged = second(None, 0.3)
     capped = second(1, 0.3)
     assert np.linalg.norm(capped[:3, 3] - converged[:3, 3]) > 0.01
     np.testing.assert_array_equal(second(1, None), second(None, None))
+    # a guess that is not the IMU's full prediction (the extrinsic calibration's) is not capped
+    np.testing.assert_array_equal(second(1, 0.3, capped=False), converged)

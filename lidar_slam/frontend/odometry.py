@@ -311,8 +311,8 @@ class Odometry:
                                                 max_range=self.max_range_m)
 
     def register(self, points: np.ndarray, selected: bool = False, refine: bool = False,
-                 initial_guess: np.ndarray | None = None, at_speed: bool = False
-                 ) -> np.ndarray | None:
+                 initial_guess: np.ndarray | None = None, at_speed: bool = False,
+                 capped: bool = True) -> np.ndarray | None:
         """kiss-icp's registration of points (N,3) in the sensor frame: T_world_points, or None
         (and no state change) when fewer than data.min_points are left after the range crop and
         the half-voxel selection (last_n_points says how many). selected: the points are already
@@ -320,7 +320,9 @@ class Odometry:
         pose against the last keyframes' clouds (when there are any). initial_guess: where ICP
         starts (the IMU's prediction), else kiss-icp's constant-velocity one. at_speed: refined
         for a lasting speed (_at_speed): kept only when the scan's held-out points prove it
-        better, and counted apart."""
+        better, and counted apart. capped: with an initial_guess, kiss-icp stops at
+        odometry.imu_max_num_iterations (False: a guess that is not the IMU's full prediction,
+        such as the extrinsic calibration's gyro-only one)."""
         if selected:
             frame_down = _vec(points)
         else:
@@ -335,7 +337,7 @@ class Odometry:
         predicted = initial_guess is not None  # by the IMU
         if initial_guess is None:
             initial_guess = self.last_pose @ self.last_delta
-        registration = self._from_imu if predicted else self._registration
+        registration = self._from_imu if predicted and capped else self._registration
         new_pose = registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
@@ -355,15 +357,16 @@ class Odometry:
         self.last_pose = new_pose
         return new_pose
 
-    def step(self, scan: DeskewedScan, initial_guess: np.ndarray | None = None
-             ) -> OdometryResult:
+    def step(self, scan: DeskewedScan, initial_guess: np.ndarray | None = None,
+             capped: bool = True) -> OdometryResult:
         """Register a deskewed scan and return its pose at the stamp. initial_guess: the IMU's
-        prediction of the pose at the scan's reference instant (else constant velocity)."""
+        prediction of the pose at the scan's reference instant (else constant velocity);
+        capped: as register's."""
         self._scan_index = scan.scan.index
         slow = self.is_slow(scan.period_s)
         at_speed = not slow and self._at_speed()
         T_world_ref = self.register(scan.points, scan.selected, slow or at_speed, initial_guess,
-                                    at_speed=at_speed)
+                                    at_speed=at_speed, capped=capped)
         fast = T_world_ref is not None and not self.is_slow(scan.period_s)  # its new motion
         self._fast_s = self._fast_s + scan.period_s if fast else 0.0
         if T_world_ref is None:
