@@ -90,7 +90,7 @@ class OdometryConfig(_Section):
     # kiss-icp's TBB threads (0: every core). With more than one, its correspondence search and
     # normal-equation sums run in a varying order (poses ~2e-15 apart, which a run's chaos
     # carried to 1.9 cm on a hand-held walk); the odometry rounds kiss-icp's pose to 1e-6
-    # (frontend.odometry.POSE_QUANTUM), so two runs, and runs on 1 or 2 threads, write the same
+    # (pose_quantum_m below), so two runs, and runs on 1 or 2 threads, write the same
     # poses. kiss-icp sets TBB's process-wide limit from the first registration made in a
     # process, which also bounds gtsam's TBB: the first Odometry of a process decides for all.
     # Cost of one thread: 1.35x the wall time of a dense hand-held walk (docs/design.md,
@@ -98,6 +98,10 @@ class OdometryConfig(_Section):
     # 0.022 / 0.117 -> 0.017 / 0.107 m, lidar only 0.120 / 2.695 -> 0.132 / 2.252 m (the rounding
     # perturbs each run once; the thread count no longer changes a pose).
     max_num_threads: NonNegativeInt = 0
+    # The grid kiss-icp's pose is rounded to (m, and the rotation matrix's entries). Not a
+    # tuning knob: tools/bank.py run --perturb moves it by 0.1 % (each pose by under 0.5 um) to
+    # measure how far a run's result is its chaos (docs/bank.md, "Spread").
+    pose_quantum_m: Positive = 1e-6
     # Slow scans are refined after kiss-icp: a scan whose last motion is under refine_below_mps
     # (m/s) is registered again, from kiss-icp's pose, by point-to-plane ICP against the clouds
     # of the last refine_keyframes keyframes (matches up to refine_max_correspondence_m). Its

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from lidar_slam.geometry import from_xyz_quat
 from lidar_slam.io.trajectory import read_kitti_poses
@@ -138,7 +139,7 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     monkeypatch.setattr(b, "BANK", (spec,))
     out = tmp_path / "docs" / "bank.json"
     code = b.main(["run", "--root", str(tmp_path / "bank"), "--out", str(out), "--systems",
-                   "lidar-slam"])
+                   "lidar-slam", "--perturb", "1"])
     assert code == 0
     data = json.loads(out.read_text())
     cells = data["results"][spec.name]["lidar-slam"]
@@ -157,6 +158,24 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     assert "| **median** |" in md and "| **worst** |" in md
     assert len(read_kitti_poses(tmp_path / "bank" / "runs" / spec.name / "lidar-slam"
                                 / "poses_kitti.txt")) == 30
+    # --perturb 1: one more run, kiss-icp's pose on a grid 0.1 % finer, its figures kept
+    (again,) = cells["perturbed"]
+    assert again["error"] is None and 0.0 <= again["ate_m"] < 0.2
+    assert yaml.safe_load((tmp_path / "bank" / "runs" / "perturb-1" / "variant.yaml")
+                          .read_text())["odometry"]["pose_quantum_m"] == pytest.approx(1.001e-6)
+    assert "## Spread" in md and "lidar-slam: 2 runs each" in md
+
+
+def test_perturbed_runs_keep_the_variant_under_test_and_alternate_their_grid(tmp_path):
+    b = bank()
+    variant = tmp_path / "v.yaml"
+    variant.write_text("odometry:\n  max_num_iterations: 40\nloop:\n  enabled: false\n")
+    grids = []
+    for k in (1, 2, 3):
+        got = yaml.safe_load(b.perturbed_variant(variant, k, tmp_path / f"p{k}").read_text())
+        assert got["odometry"]["max_num_iterations"] == 40 and got["loop"]["enabled"] is False
+        grids.append(got["odometry"]["pose_quantum_m"])
+    assert grids == pytest.approx([1.001e-6, 0.999e-6, 1.002e-6])
 
 
 def test_lidar_slam_config_prefers_the_overlay_simulate_wrote(tmp_path):

@@ -13,14 +13,13 @@ from lidar_slam.frontend.odometry import Odometry, VoxelSelector, quantised
 from lidar_slam.io.sources import open_source
 
 
-def test_odometry_equals_stock_kiss_icp_on_kitti(kitti16, monkeypatch):
-    """Stock KissICP's poses. Our rounding of kiss-icp's pose (POSE_QUANTUM) made fine: at its
-    1e-6 a rounding step tipped frame 4 of these into another of ICP's minima 1.5 mm away, as
-    any perturbation of that size can (a run's chaos, not a bias: test below)."""
-    monkeypatch.setattr(odometry, "POSE_QUANTUM", 1e-12)
+def test_odometry_equals_stock_kiss_icp_on_kitti(kitti16):
+    """Stock KissICP's poses. Our rounding of kiss-icp's pose (odometry.pose_quantum_m) made
+    fine: at its 1e-6 a rounding step tipped frame 4 of these into another of ICP's minima 1.5 mm
+    away, as any perturbation of that size can (a run's chaos, not a bias: test below)."""
     src = open_source(kitti16)
     stock = KissICP(kiss_load_config(None))
-    ours = Odometry(load_config())
+    ours = Odometry(load_config(overrides={"odometry": {"pose_quantum_m": 1e-12}}))
     for scan in src.scans(0, 8):
         stock.register_frame(scan.points, np.array([]))
         T = ours.register(scan.points)

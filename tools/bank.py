@@ -4,7 +4,7 @@ system run on every one of them, judged by the bank's median and its worst seque
 Usage: python tools/bank.py build --root /work/bank [--only NAME,...]
        python tools/bank.py run --root /work/bank --out docs/benchmarks/DATE-bank.json
               [--only NAME,...] [--systems lidar-slam,lidar-slam-lidar-only,rko-lio]
-              [--work DIR] [--config VARIANT.yaml]
+              [--work DIR] [--config VARIANT.yaml] [--perturb K]
        python tools/bank.py spec          (the bank as a markdown table)
 
 build simulates each sequence of BANK into ROOT/<name> with `lidar-slam simulate` (a fixed seed
@@ -31,6 +31,12 @@ NEES of keyframe positions (covariances.csv against the truth; 3 when consistent
 wall time (s) and peak RSS (MB) of the whole process. Loop precision and NEES are scored at the
 graph nodes' instants (node_scores; the JSON keeps the same at the frames' stamps as
 *_stamps) where the run's covariances.csv says where its nodes are.
+
+--perturb K runs lidar-slam K more times on each sequence with kiss-icp's pose rounded on a grid
+0.1 % finer or coarser each time (odometry.pose_quantum_m: every pose moves by under 0.5 um)
+into WORK/perturb-k, and adds the range of each figure (a Spread section; "perturbed" in the
+JSON): on the hand-held lidar-only rows that much perturbation moves loop precision by up to
+0.25 and ATE by 3x, so a single run there passes or fails a bar by chance.
 """
 
 from __future__ import annotations
@@ -597,9 +603,72 @@ def system_table(system: str, results: dict[str, dict]) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", summary
 
 
+# What --perturb keeps of each perturbed run, and the spread table's columns.
+SPREAD_KEYS = ("ate_m", "odom_ate_m", "final_over_odom", "loops_accepted", "loop_precision",
+               "loop_precision_kept", "nees_mean")
+SPREAD_COLUMNS = (("ate_m", "ATE m", 3, "high"), ("loop_precision", "loop precision", 2, "low"),
+                  ("loop_precision_kept", "precision of kept", 2, "low"),
+                  ("nees_mean", "NEES (3)", 1, "nees"), ("final_over_odom", "final / odometry", 2,
+                                                         "high"))
+
+
+def perturbed_variant(variant: Path | None, k: int, where: Path) -> Path:
+    """The overlay of perturbed run k: variant (if any) with kiss-icp's pose rounded on a grid
+    0.1 % * ceil(k / 2) finer or coarser (odometry.pose_quantum_m; each pose moves by under
+    half a micrometre): the same input, another draw of the run's chaos."""
+    import yaml
+
+    from lidar_slam.config import OdometryConfig
+
+    values = yaml.safe_load(variant.read_text()) if variant is not None else {}
+    step = 1e-3 * ((k + 1) // 2) * (1 if k % 2 else -1)
+    base = values.get("odometry", {}).get("pose_quantum_m",
+                                          OdometryConfig().pose_quantum_m)
+    values.setdefault("odometry", {})["pose_quantum_m"] = base * (1.0 + step)
+    where.mkdir(parents=True, exist_ok=True)
+    path = where / "variant.yaml"
+    path.write_text(yaml.safe_dump(values))
+    return path
+
+
+def spread_table(system: str, results: dict[str, dict]) -> str:
+    """One system's spread over its perturbed runs: per sequence and column the run's value,
+    then the range over it and the perturbed runs; the last row, per column, the worst
+    sequence by its worst run (what a bar has to hold against)."""
+    rows = {n: b[system] for n, b in results.items() if system in b
+            and not b[system]["error"] and b[system].get("perturbed")}
+    if not rows:
+        return ""
+    n_runs = 1 + max(len(r["perturbed"]) for r in rows.values())
+    head = ["sequence"] + [f"{c[1]}: run (range)" for c in SPREAD_COLUMNS]
+    lines = [f"### {benchmark.LABELS[system]}: {n_runs} runs each", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    worst_of = {c[0]: {} for c in SPREAD_COLUMNS}
+    for name, r in rows.items():
+        cells = [name]
+        for key, _, digits, worse in SPREAD_COLUMNS:
+            vals = [v for v in [r.get(key)] + [p.get(key) for p in r["perturbed"]]
+                    if v is not None]
+            if not vals:
+                cells.append("-")
+                continue
+            cells.append(f"{_fmt(r.get(key), digits)} ({_fmt(min(vals), digits)}-"
+                         f"{_fmt(max(vals), digits)})")
+            worst_of[key][name] = median_and_worst(dict(enumerate(vals)), worse)[1]
+        lines.append("| " + " | ".join(cells) + " |")
+    last = ["**worst run**"]
+    for key, _, digits, worse in SPREAD_COLUMNS:
+        _, value, where = median_and_worst(worst_of[key], worse)
+        last.append("-" if where is None else f"{_fmt(value, digits)} ({where})")
+    lines += ["| " + " | ".join(last) + " |", ""]
+    return "\n".join(lines) + "\n"
+
+
 def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | None,
-        argv: list[str], variant: Path | None = None) -> int:
-    """Every system on every built sequence; writes out (JSON) and out.with_suffix('.md')."""
+        argv: list[str], variant: Path | None = None, perturb: int = 0) -> int:
+    """Every system on every built sequence; writes out (JSON) and out.with_suffix('.md').
+    perturb: each of lidar-slam's runs that many times more, perturbed (perturbed_variant):
+    their figures in the JSON under "perturbed", their range in the markdown's Spread."""
     results: dict[str, dict] = {}
     status: dict[str, str] = {}
     timing: dict[str, float] = {}
@@ -614,6 +683,13 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
         t0 = time.perf_counter()
         try:
             results[spec.name] = run_sequence(spec, path, work, systems, variant)
+            ours = [s for s in systems if s in benchmark.OURS]
+            for k in range(1, perturb + 1):
+                again = run_sequence(spec, path, work / f"perturb-{k}", ours,
+                                     perturbed_variant(variant, k, work / f"perturb-{k}"))
+                for s, cells in again.items():
+                    results[spec.name][s].setdefault("perturbed", []).append(
+                        {key: cells.get(key) for key in SPREAD_KEYS + ("error",)})
         except (FileNotFoundError, LidarSlamError) as exc:
             status[spec.name] = f"failed: {exc}"
             print(f"{spec.name}: {exc}")
@@ -638,6 +714,13 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
     for system in systems:
         table, summaries[system] = system_table(system, results)
         md.append(table)
+    if perturb:
+        md += ["## Spread", "", f"Each lidar-slam run {perturb} more times with kiss-icp's pose "
+               "rounded on a grid 0.1-0.2 % off (`odometry.pose_quantum_m`: every pose moves by "
+               "under 0.5 um, the input and every setting the same); the table's figures above "
+               "are the first run's. A row whose range crosses a bar passes or fails it by "
+               "chance.", ""]
+        md += [spread_table(system, results) for system in systems]
     notes = [f"- {n} / {s}: {note}" for n, b in results.items() for s, r in b.items()
              for note in r["notes"]]
     if notes:
@@ -665,6 +748,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--work", type=Path, default=None, help="run folders (default ROOT/runs)")
     r.add_argument("--config", type=Path, default=None,
                    help="a lidar-slam YAML overlay under test, merged over each sequence's")
+    r.add_argument("--perturb", type=int, default=0, metavar="K",
+                   help="run lidar-slam K more times per sequence, kiss-icp's pose rounded on "
+                        "a grid 0.1 %% off each time, and report the spread (a run's chaos)")
     args = ap.parse_args(argv)
     if args.action == "spec":
         print(spec_table(), end="")
@@ -679,8 +765,10 @@ def main(argv: list[str] | None = None) -> int:
     if set(systems) - set(SYSTEMS):
         sys.exit(f"--systems: choose from {SYSTEMS}")
     systems = [s for s in systems if benchmark.available(s)]
+    if args.perturb < 0:
+        sys.exit("--perturb: a count of runs, 0 or more")
     return run(args.root, args.out, args.work or args.root / "runs", systems, only, argv,
-               args.config)
+               args.config, args.perturb)
 
 
 if __name__ == "__main__":

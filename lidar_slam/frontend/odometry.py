@@ -41,11 +41,11 @@ from lidar_slam.registration import PlaneTarget, orthonormal, voxel_centroids
 POSE_QUANTUM = 1e-6
 
 
-def quantised(T: np.ndarray) -> np.ndarray:
-    """T (4x4) rounded to POSE_QUANTUM: the rotation's entries, then the nearest rotation to
-    them (registration.orthonormal: SVD, deterministic for the same input), and the
+def quantised(T: np.ndarray, q: float | None = None) -> np.ndarray:
+    """T (4x4) rounded to q (default POSE_QUANTUM): the rotation's entries, then the nearest
+    rotation to them (registration.orthonormal: SVD, deterministic for the same input), and the
     translation's metres."""
-    q = POSE_QUANTUM
+    q = POSE_QUANTUM if q is None else q
     out = np.eye(4)
     out[:3] = np.round(np.asarray(T[:3]) / q) * q
     return orthonormal(out)
@@ -341,7 +341,7 @@ class Odometry:
         new_pose = registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=initial_guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
-        new_pose = quantised(new_pose)
+        new_pose = quantised(new_pose, self.cfg.odometry.pose_quantum_m)
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
             evidence = at_speed or mode is True or (mode == "with_imu" and self.imu and predicted)
