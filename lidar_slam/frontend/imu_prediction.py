@@ -336,9 +336,9 @@ class ImuFrontend:
         t_stamp, t_ref = deskewed.scan.stamp_s, deskewed.scan.stamp_s + deskewed.ref_s
         f = (t_stamp - self.t_last) / (t_ref - self.t_last) if t_ref > self.t_last else 1.0
         correction = inverse(guess) @ odom.T_world_ref
-        # Rounded as kiss-icp's pose is (to odometry.POSE_QUANTUM, 1e-6): the IMU's smoother, rebuilt by
-        # replay on resume, predicts within ~1e-14 of the run never stopped, and the final
-        # solve would carry that to half a millimetre; rounded, both write the same bytes.
+        # Rounded as kiss-icp's pose is (to odometry.POSE_QUANTUM, 1e-6): the IMU's smoother,
+        # rebuilt by replay on resume, predicts within ~1e-14 of the run never stopped, and the
+        # final solve would carry that to half a millimetre; rounded, both write the same bytes.
         T_world_stamp = quantised(guess @ deskewed.motion.T_ref_at(-deskewed.ref_s)
                                   @ _towards(correction, f))
         T_ref_stamp = inverse(odom.T_world_ref) @ T_world_stamp
