@@ -59,6 +59,7 @@ if __package__ in (None, ""):  # run as a script: `tools` importable from the re
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lidar_slam.errors import LidarSlamError  # noqa: E402
+from lidar_slam.eval.evaluate import truthy  # noqa: E402
 from tools import benchmark  # noqa: E402
 
 KITTI_POSES = Path("/work/shared/data/kitti_gt/poses")
@@ -283,7 +284,6 @@ def truth_at(seq_path: Path, spec: Spec, seq: benchmark.Sequence, frame: int, dt
 
 
 _TRUTH_CACHE: dict[tuple, tuple] = {}
-ACCEPTED = ("1", "true", "yes", "y")  # loops.csv's accepted column, as benchmark.py reads it
 
 
 def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) -> dict:
@@ -334,7 +334,7 @@ def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) 
     if loops_csv.is_file():
         with loops_csv.open(newline="") as fh:
             acc = [(int(r["query_frame"]) - seq.start, int(r["match_frame"]) - seq.start)
-                   for r in csv.DictReader(fh) if r["accepted"].strip().lower() in ACCEPTED]
+                   for r in csv.DictReader(fh) if truthy(r["accepted"])]
     if acc and g2o.is_file():
         edges = {(int(frames[e.j]), int(frames[e.i])): e.T_i_j
                  for e in read_g2o(g2o).edges if abs(e.j - e.i) != 1}
@@ -364,7 +364,7 @@ def backend_kept(loops_csv: Path) -> np.ndarray | None:
 
     with loops_csv.open(newline="") as fh:
         rows = [r for r in csv.DictReader(fh)
-                if r["accepted"].strip().lower() in ACCEPTED]
+                if truthy(r["accepted"])]
     if rows and "backend" not in rows[0]:
         return None
     return np.array([r["backend"].strip() != "rejected" for r in rows], dtype=bool)

@@ -361,7 +361,7 @@ def lidar_slam_loops(path: Path, start: int, n: int) -> tuple[np.ndarray, np.nda
 
         with path.open(newline="") as fh:
             rows = [r for r in csv.DictReader(fh)
-                    if r["accepted"].strip().lower() in ("1", "true", "yes", "y")]
+                    if evaluate.truthy(r["accepted"])]
         if rows and set(LOOPS_POSE_COLUMNS) <= set(rows[0]):
             T = np.array([from_xyz_quat(np.array([float(r[c]) for c in LOOPS_POSE_COLUMNS]))
                           for r in rows]).reshape(-1, 4, 4)

@@ -193,7 +193,8 @@ def _associate(t_est: np.ndarray, t_gt: np.ndarray, max_diff_s: float) -> tuple[
     return est_rows[keep], gt_rows[keep]
 
 
-def _truthy(value: str) -> bool:
+def truthy(value: str) -> bool:
+    """Whether a loops.csv flag (accepted, ...) says yes: 1 / true / yes / y, any case."""
     return value.strip().lower() in ("1", "true", "yes", "y")
 
 
@@ -222,7 +223,7 @@ def read_loops_csv(path: str | Path) -> AcceptedLoops:
             raise InputError(p, f"line {line}: {n} columns, the header has "
                                 f"{len(reader.fieldnames)}")
         try:
-            if not _truthy(r["accepted"]):
+            if not truthy(r["accepted"]):
                 continue
             pairs.append([int(r["query_frame"]), int(r["match_frame"])])
             if has_pose:
