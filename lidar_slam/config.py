@@ -325,7 +325,9 @@ class LoopConfig(_Section):
     # odometry's) is one the odometry can have drifted: Mahalanobis distance under the
     # covariance accumulated along the odometry edges since the match keyframe (each edge's own
     # information, lidar_slam.frontend.edge_information) plus the loop's own, against the
-    # chi-square(6) quantile of this tail probability (1e-6: 38.3). 0 turns the gate off.
+    # chi-square(6) quantile of this tail probability (1e-6: 38.3). 0 turns the gate off. The
+    # same test keeps the verification's submaps from crossing an odometry edge that the two
+    # keyframes' own clouds contradict (a jump: LoopDetector.edge_consistent).
     drift_gate_p: Fraction = 1e-6
     # With an IMU, a loop is also refused when the up direction it implies for the query
     # keyframe (the match's, as the IMU saw it, turned by the loop) is further than this from

@@ -60,6 +60,9 @@ class RunResult:
     adaptive: dict = field(default_factory=dict)  # the config's "auto" settings as fixed
     # (match kf, query kf) -> "inlier" / "rejected": what the final solve made of each loop
     loop_backend: dict = field(default_factory=dict)
+    # keyframe ids whose odometry edge the loop stage found contradicted by its clouds (loop
+    # submaps stop there: LoopDetector.edge_consistent)
+    loop_split_edges: set = field(default_factory=set)
     backend_init: str = ""  # the start the final solve kept (live / chordal; GNC: odometry)
     # slow scans refined against the last keyframes; refinements refused by the correction
     # gate, by the held-out points' evidence after the ICP, and before it (see odometry)
@@ -352,6 +355,7 @@ class Pipeline:
             self._add_node(res.kf_id, res.edge_information)
             res = self._check_tilt(res)
             self.result.loops.extend(res.records)
+            self.result.loop_split_edges.update(res.split_edges)
             if res.constraint is not None:
                 self.backend.add_loop(res.constraint)
             self.loops_applied_upto = res.kf_id

@@ -455,6 +455,7 @@ def test_two_runs_write_identical_files(tmp_path):
     # The back-end's share of the run, and its verdict on every accepted loop (all true here).
     assert 0 < summary["backend_s"] < summary["wall_s"] and 0 < summary["backend_share_pct"] < 100
     assert summary["loops_backend_rejected"] == 0
+    assert summary["loops_submap_splits"] == 0  # a smooth KITTI drive: no odometry jump
     rows = [ln.split(",") for ln in (tmp_path / "a" / "loops.csv").read_text().splitlines()]
     assert rows[0][-1] == "backend"
     assert [r[-1] for r in rows[1:] if r[6] == "1"] == ["inlier"] * summary["loops_accepted"]

@@ -228,6 +228,43 @@ def test_the_worker_weighs_each_edge_as_the_pipeline_would_in_any_order():
     store.close()
 
 
+def test_loop_submaps_do_not_cross_an_odometry_edge_its_clouds_contradict():
+    """A revisit where kiss-icp snapped onto its own older map: the odometry puts keyframe 7
+    0.6 m above keyframe 6 while both clouds see the same room at the same height. That edge
+    fails its check (the clouds registered from the odometry's pose move back by far more than
+    both covariances allow), the others pass, and a submap centred on either side stops at it."""
+    from lidar_slam.config import load_config
+    from lidar_slam.loop import adapt
+    from lidar_slam.loop.detector import LoopDetector
+    from lidar_slam.map.keyframes import KeyframeStore
+
+    rng = np.random.default_rng(6)
+    store = KeyframeStore(None)
+    room = _room(rng, 0.01)
+    cfg = load_config()
+    cfg = adapt.apply(cfg, adapt.auto_values(cfg, room))
+    for k in range(12):
+        jump = 0.6 if k >= 7 else 0.0  # the odometry's error from keyframe 7 on
+        store.add(k, make_pose(np.eye(3), [0.4 * k, 0.0, jump]), room - [0.4 * k, 0, 0], None)
+    det = LoopDetector(cfg, store)
+    assert [det.edge_consistent(k) for k in range(1, 12)] == [True] * 6 + [False] + [True] * 4
+    assert det.n_split == 1
+    assert det._edge_d2(7) > 2 * det._gate_d2 and det._edge_d2(8) < det._gate_d2
+    radius = cfg.loop.verify.submap_radius
+
+    def n_points(centre):
+        return len(det.submap(centre, radius, 11))
+
+    per_kf = len(store.get(0).points)
+    assert n_points(4) == 5 * per_kf  # 2..6: no jump inside
+    assert n_points(7) == 3 * per_kf  # 7, 8, 9: not 5 or 6
+    assert n_points(6) == 3 * per_kf  # 4, 5, 6: not 7 or 8
+    off = LoopDetector(cfg.model_copy(update={"loop": cfg.loop.model_copy(
+        update={"drift_gate_p": 0.0})}), store)  # the drift gate off: no check either
+    assert off.edge_consistent(7) and len(off.submap(7, radius, 11)) == 5 * per_kf
+    store.close()
+
+
 def test_the_drift_gates_chi_square_quantile_is_scipys():
     from scipy.special import chdtri
 

@@ -17,8 +17,16 @@ from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.edge_information import EdgeInformation
 from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
-from lidar_slam.loop.verify import Side, match_side, query_side, verify
+from lidar_slam.loop.verify import (
+    Side,
+    evaluate_fit,
+    information_matrix,
+    match_side,
+    query_side,
+    verify,
+)
 from lidar_slam.map.keyframes import KeyframeStore
+from lidar_slam.registration import align, make_cloud
 from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
@@ -29,6 +37,8 @@ log = logging.getLogger(__name__)
 # 10,000-scan drive 124 vs 144 of 2,171. Replaying that drive's keyframe store, the detector
 # ended at 140 MB with 16 kept, 86.5 MB with 2, 75 MB with none (cache and heap fragmentation).
 MATCH_SIDES_KEPT = 2
+# Fewer points (or matched points) than this in either keyframe: an edge is not checked.
+MIN_EDGE_POINTS = 30
 
 
 def chi2_isf_6(p: float) -> float:
@@ -80,6 +90,9 @@ class LoopResult:
     # the information of the odometry edge into kf_id (6x6, rotation first), from the clouds
     # (frontend.edge_information; None: too thin, or off: the configured sigmas)
     edge_information: np.ndarray | None = None
+    # odometry edges (the keyframe ids they lead into) found contradicted by their clouds while
+    # building this keyframe's submaps (LoopDetector.edge_consistent)
+    split_edges: tuple[int, ...] = ()
 
 
 class LoopDetector:
@@ -110,6 +123,9 @@ class LoopDetector:
         self._edge_info: dict[int, np.ndarray | None] = {}
         self._edge_cov: dict[int, np.ndarray] = {}
         self._gate_d2 = 0.0
+        self._consistent: dict[int, bool] = {}  # keyframe id -> edge_consistent
+        self.n_split = 0  # odometry edges found contradicted (edge_consistent)
+        self._new_splits: list[int] = []  # ... since process() began
         if cfg.loop.drift_gate_p > 0:
             self._gate_d2 = chi2_isf_6(cfg.loop.drift_gate_p)
 
@@ -134,14 +150,67 @@ class LoopDetector:
                 self._index(kf_id, pts.astype(np.float64))
 
     def submap(self, kf_id: int, radius: int, upto: int) -> np.ndarray:
-        """Clouds of keyframes kf_id-radius..kf_id+radius (none after `upto`) in kf_id's frame."""
+        """Clouds of keyframes kf_id-radius..kf_id+radius (none after `upto`) in kf_id's frame,
+        but none beyond an odometry edge its own clouds contradict (edge_consistent): a
+        neighbour placed across a jump of the odometry would smear the submap."""
         centre = self.store.T_world_kf_odom(kf_id)
+        lo, hi = kf_id, kf_id
+        while lo > max(0, kf_id - radius) and self.edge_consistent(lo):
+            lo -= 1
+        while hi < min(upto, kf_id + radius) and self.edge_consistent(hi + 1):
+            hi += 1
         parts = []
-        for j in range(max(0, kf_id - radius), min(upto, kf_id + radius) + 1):
+        for j in range(lo, hi + 1):
             kf = self.store.get(j)
             parts.append(transform_points(relative(centre, kf.T_world_kf_odom),
                                           kf.points.astype(np.float64)))
         return np.concatenate(parts)
+
+    def edge_consistent(self, kf_id: int) -> bool:
+        """Do the clouds of keyframes kf_id - 1 and kf_id agree with the odometry edge between
+        them? kf_id's cloud registered onto its predecessor's from the odometry's relative pose
+        (the verification's fine clouds and ICP); the correction against the edge's covariance
+        plus the registration's own (Mahalanobis, chi-square(6) at loop.drift_gate_p). An
+        odometry that jumped between them (kiss-icp snapping onto its own older map at a
+        revisit: 0.6 m in height in two scans of a legged trot, docs/bank.md) fails; so does
+        nothing else on the bank. Cached; a function of the two stored keyframes only."""
+        ok = self._consistent.get(kf_id)
+        if ok is None:
+            ok = True
+            if self._gate_d2 > 0 and kf_id > 0:
+                d2 = self._edge_d2(kf_id)
+                ok = d2 <= self._gate_d2
+                if not ok:
+                    self.n_split += 1
+                    self._new_splits.append(kf_id)
+                    log.info("keyframe %d: odometry edge from %d contradicted by its clouds "
+                             "(Mahalanobis^2 %.0f > %.1f): loop submaps do not cross it",
+                             kf_id, kf_id - 1, d2, self._gate_d2)
+            self._consistent[kf_id] = ok
+        return ok
+
+    def _edge_d2(self, kf_id: int) -> float:
+        """Squared Mahalanobis distance of kf_id's cloud registered onto kf_id - 1's from the
+        odometry's pose (edge_consistent); 0 when either cloud is too thin to say."""
+        from lidar_slam.backend.gtsam_graph import between_error
+
+        v = self.cfg.loop.verify
+        prev, kf = self.store.get(kf_id - 1), self.store.get(kf_id)
+        if min(len(prev.points), len(kf.points)) < MIN_EDGE_POINTS:
+            return 0.0
+        tgt = make_cloud(prev.points.astype(np.float64), v.voxel_m, True, False)
+        src = make_cloud(kf.points.astype(np.float64), v.voxel_m, False, False)
+        T0 = relative(prev.T_world_kf_odom, kf.T_world_kf_odom)
+        T = align(tgt.cloud, tgt.tree, src.cloud, T0, v.max_correspondence_m,
+                  v.max_iterations, "PLANE_ICP")
+        fit = evaluate_fit(src, tgt, T, v.inlier_m)
+        if len(fit.correspondences) < MIN_EDGE_POINTS:
+            return 0.0
+        info = information_matrix(src.points, tgt.points, tgt.normals, fit.correspondences, T,
+                                  fit.rmse_m, v)
+        cov = self._edge_covariance(kf_id) + np.linalg.inv(info)
+        err = between_error(T0, np.eye(4), T)
+        return float(err @ np.linalg.solve(cov, err))
 
     def plausible(self, query: int, match: int) -> bool:
         """Could the odometry have drifted far enough to put these keyframes where it did, were
@@ -219,6 +288,7 @@ class LoopDetector:
         candidates, verified until one is accepted; then index the keyframe."""
         kf = self.store.get(kf_id)
         edge = self.edge_information(kf_id)
+        self._new_splits = []
         query_pts = kf.points.astype(np.float64)
         records: list[LoopRecord] = []
         constraint = None
@@ -248,7 +318,7 @@ class LoopDetector:
                          records[-1].match_frame, res.fitness)
                 break
         self._index(kf.id, query_pts)
-        return LoopResult(kf_id, tuple(records), constraint, edge)
+        return LoopResult(kf_id, tuple(records), constraint, edge, tuple(self._new_splits))
 
 
 def loops_csv_rows(records: list[LoopRecord],

@@ -64,7 +64,7 @@ class VerificationResult:
 
 
 @dataclass(frozen=True)
-class _Fit:
+class Fit:
     """Share of query points with a match point within the inlier distance, their RMSE (m),
     and the (K, 2) query/match indices of those pairs."""
 
@@ -84,14 +84,14 @@ def _icp(src: Cloud, tgt: Cloud, T0: np.ndarray, max_corr_m: float,
                  "GICP" if cfg.method == "gicp" else "PLANE_ICP")
 
 
-def _evaluate(src: Cloud, tgt: Cloud, T_match_query: np.ndarray, inlier_m: float) -> _Fit:
+def evaluate_fit(src: Cloud, tgt: Cloud, T_match_query: np.ndarray, inlier_m: float) -> Fit:
     """Fitness and inlier RMSE of T_match_query: each query point's nearest match point."""
     moved = src.points @ T_match_query[:3, :3].T + T_match_query[:3, 3]
     idx, sq = tgt.nearest(moved)
     inlier = (idx >= 0) & (sq <= inlier_m**2)
     fitness = float(inlier.sum()) / max(len(moved), 1)
     rmse = float(np.sqrt(sq[inlier].mean())) if inlier.any() else np.inf
-    return _Fit(fitness, rmse, np.c_[np.flatnonzero(inlier), idx[inlier]])
+    return Fit(fitness, rmse, np.c_[np.flatnonzero(inlier), idx[inlier]])
 
 
 def _coarse_align(src_c: Cloud, tgt_c: Cloud, T0: np.ndarray,
@@ -99,7 +99,7 @@ def _coarse_align(src_c: Cloud, tgt_c: Cloud, T0: np.ndarray,
     """Coarse ICP from T0 (full, then half the coarse correspondence distance); (T, fitness)."""
     T = _icp(src_c, tgt_c, T0, cfg.coarse_correspondence_m, cfg)
     T = _icp(src_c, tgt_c, T, 0.5 * cfg.coarse_correspondence_m, cfg)
-    return T, _evaluate(src_c, tgt_c, T, cfg.coarse_inlier_m).fitness
+    return T, evaluate_fit(src_c, tgt_c, T, cfg.coarse_inlier_m).fitness
 
 
 def _failed_gates(fitness: float, rmse: float, margin: float | None, turned_deg: float,
@@ -242,7 +242,7 @@ def verify(candidate: LoopCandidate, query: np.ndarray | Side, match: np.ndarray
 
     # 3. Refine the winner on the fine clouds, score it there, and gate.
     T = _icp(src, tgt, best.T_match_query, cfg.max_correspondence_m, cfg)
-    ev = _evaluate(src, tgt, T, cfg.inlier_m)
+    ev = evaluate_fit(src, tgt, T, cfg.inlier_m)
     fitness, rmse = ev.fitness, ev.rmse_m
     yaw_icp = levelled_yaw(T)
     turned = abs(np.degrees(_wrap(yaw_icp - best.yaw_start_rad)))

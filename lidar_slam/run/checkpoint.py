@@ -216,7 +216,8 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
             "loops_applied_upto": loops_applied_upto, "skipped_empty": r.skipped_empty,
             "skipped_small": r.skipped_small,
             "deskew": pipe.deskew.state(), "seconds": r.seconds, "adaptive": pipe.adaptive,
-            "loop_records": [_record_json(x) for x in r.loops]}
+            "loop_records": [_record_json(x) for x in r.loops],
+            "loop_split_edges": sorted(r.loop_split_edges)}
     arrays = {
         "indices": np.asarray(r.indices, np.int64), "stamps_s": np.asarray(r.stamps_s),
         "odom_poses": np.asarray(r.odom_poses).reshape(-1, 4, 4),
@@ -297,6 +298,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.skipped_empty = meta["skipped_empty"]
     r.skipped_small = meta.get("skipped_small", 0)
     r.seconds = meta["seconds"]
+    r.loop_split_edges = set(meta.get("loop_split_edges", ()))
     pipe.start(meta["adaptive"])
     if meta["frames"]:
         pipe.keyframes.last = a["selector_last"]

@@ -43,7 +43,8 @@ def write_loops(out_dir: Path, result: RunResult) -> dict:
         result.graph.write_g2o(out_dir / "graph.g2o")
     return {"loops_candidates": len(result.loops),
             "loops_accepted": sum(1 for r in result.loops if r.accepted),
-            "loops_backend_rejected": sum(s == "rejected" for s in result.loop_backend.values())}
+            "loops_backend_rejected": sum(s == "rejected" for s in result.loop_backend.values()),
+            "loops_submap_splits": len(result.loop_split_edges)}
 
 
 def node_to_frame(result: RunResult) -> dict[int, np.ndarray]:
