@@ -26,7 +26,7 @@ from lidar_slam.loop.verify import (
     verify,
 )
 from lidar_slam.map.keyframes import KeyframeStore
-from lidar_slam.registration import align, make_cloud
+from lidar_slam.registration import Cloud, align, make_cloud
 from lidar_slam.types import LoopCandidate, LoopConstraint
 
 log = logging.getLogger(__name__)
@@ -39,6 +39,8 @@ log = logging.getLogger(__name__)
 MATCH_SIDES_KEPT = 2
 # Fewer points (or matched points) than this in either keyframe: an edge is not checked.
 MIN_EDGE_POINTS = 30
+# Keyframe clouds kept for the edge checks (a query's 2 edges, a match submap's 4).
+EDGE_CLOUDS_KEPT = 8
 
 
 def chi2_isf_6(p: float) -> float:
@@ -126,6 +128,7 @@ class LoopDetector:
         self._consistent: dict[int, bool] = {}  # keyframe id -> edge_consistent
         self.n_split = 0  # odometry edges found contradicted (edge_consistent)
         self._new_splits: list[int] = []  # ... since process() began
+        self._edge_clouds: dict[int, Cloud] = {}  # keyframe id -> _edge_cloud, oldest first
         if cfg.loop.drift_gate_p > 0:
             self._gate_d2 = chi2_isf_6(cfg.loop.drift_gate_p)
 
@@ -198,8 +201,7 @@ class LoopDetector:
         prev, kf = self.store.get(kf_id - 1), self.store.get(kf_id)
         if min(len(prev.points), len(kf.points)) < MIN_EDGE_POINTS:
             return 0.0
-        tgt = make_cloud(prev.points.astype(np.float64), v.voxel_m, True, False)
-        src = make_cloud(kf.points.astype(np.float64), v.voxel_m, False, False)
+        tgt, src = self._edge_cloud(kf_id - 1), self._edge_cloud(kf_id)
         T0 = relative(prev.T_world_kf_odom, kf.T_world_kf_odom)
         T = align(tgt.cloud, tgt.tree, src.cloud, T0, v.max_correspondence_m,
                   v.max_iterations, "PLANE_ICP")
@@ -211,6 +213,19 @@ class LoopDetector:
         cov = self._edge_covariance(kf_id) + np.linalg.inv(info)
         err = between_error(T0, np.eye(4), T)
         return float(err @ np.linalg.solve(cov, err))
+
+    def _edge_cloud(self, kf_id: int) -> Cloud:
+        """Keyframe kf_id's fine cloud with normals for the edge checks: the target of the edge
+        after it and the source of the edge into it (PLANE_ICP reads the target's normals
+        only, so one cloud serves both), the last EDGE_CLOUDS_KEPT kept."""
+        cloud = self._edge_clouds.pop(kf_id, None)
+        if cloud is None:
+            cloud = make_cloud(self.store.get(kf_id).points.astype(np.float64),
+                               self.cfg.loop.verify.voxel_m, True, False)
+        self._edge_clouds[kf_id] = cloud  # newest last
+        while len(self._edge_clouds) > EDGE_CLOUDS_KEPT:
+            self._edge_clouds.pop(next(iter(self._edge_clouds)))
+        return cloud
 
     def plausible(self, query: int, match: int) -> bool:
         """Could the odometry have drifted far enough to put these keyframes where it did, were
