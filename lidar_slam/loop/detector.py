@@ -126,7 +126,6 @@ class LoopDetector:
         self._edge_cov: dict[int, np.ndarray] = {}
         self._gate_d2 = 0.0
         self._consistent: dict[int, bool] = {}  # keyframe id -> edge_consistent
-        self.n_split = 0  # odometry edges found contradicted (edge_consistent)
         self._new_splits: list[int] = []  # ... since process() began
         self._edge_clouds: dict[int, Cloud] = {}  # keyframe id -> _edge_cloud, oldest first
         if cfg.loop.drift_gate_p > 0:
@@ -184,13 +183,17 @@ class LoopDetector:
                 d2 = self._edge_d2(kf_id)
                 ok = d2 <= self._gate_d2
                 if not ok:
-                    self.n_split += 1
                     self._new_splits.append(kf_id)
                     log.info("keyframe %d: odometry edge from %d contradicted by its clouds "
                              "(Mahalanobis^2 %.0f > %.1f): loop submaps do not cross it",
                              kf_id, kf_id - 1, d2, self._gate_d2)
             self._consistent[kf_id] = ok
         return ok
+
+    @property
+    def n_split(self) -> int:
+        """How many odometry edges edge_consistent has found contradicted so far."""
+        return sum(not ok for ok in self._consistent.values())
 
     def _edge_d2(self, kf_id: int) -> float:
         """Squared Mahalanobis distance of kf_id's cloud registered onto kf_id - 1's from the
