@@ -307,14 +307,6 @@ class BackendConfig(_Section):
     # worst 0.022 / 0.117 m with the chain and with the drift state, final worse than 1.05x the
     # odometry on 4 rows -> 1 (car07 1.93 -> 1.02), NEES in 1..9 on 6 -> 12.
     odometry_drift_state: bool = True
-    # The odometry's scale as a state of the solve with the IMU: every odometry translation times
-    # 1 + s, s one number per run with a zero-mean prior of this sigma (None: no such state). A
-    # scale error keeps its sign from edge to edge, so no edge's variance carries it, and the
-    # covariance along the path did not grow with it (car05-vlp16: 0.08 % too long, NEES 8.4-9.9).
-    # 0.0005 chosen on the bank (docs/bank.md, Decisions): the IMU-aided odometry's own scale
-    # error there is 0.03 % median, 0.10 % RMS, at most 0.25 %; a freer scale (0.001, 0.01) is
-    # taken from the IMU where it cannot tell it on a short walk (keyframe ATE +25 % / +8x).
-    odometry_scale_sigma: Positive | None = 0.0005
 
 
 class LoopConfig(_Section):

@@ -38,7 +38,7 @@ None is made when the rotation is needed, not found, and the magnitudes already 
 (LAG_FREE_CORRELATION): no lag to take out, the motion hides the mounting.
 
 The rotation found is refined in the back-end's final solve (imu.T_lidar_imu_sigma_deg, set
-here to REFINE_SIGMA_FACTOR x its sigma; backend.inertial_graph.odometry_edge): the odometry's
+here to REFINE_SIGMA_FACTOR x its sigma; backend.inertial_graph.mount_edge): the odometry's
 rotation errors leave the turn vectors' fit 0.2-0.4 deg off, a few tenths the final solve's
 IMU factors are sensitive to (docs/benchmarks/2026-12-04b-imu-calibration.md).
 """

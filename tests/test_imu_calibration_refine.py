@@ -1,5 +1,5 @@
 """The IMU's mounting rotation refined in the back-end's final solve (issue 30, item 5):
-inertial_graph.odometry_edge, backend.inertial.solve with imu.T_lidar_imu_sigma_deg, and the
+inertial_graph.mount_edge, backend.inertial.solve with imu.T_lidar_imu_sigma_deg, and the
 calibration that sets it."""
 
 from __future__ import annotations
@@ -24,33 +24,21 @@ def angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.linalg.norm(rotvec_from_matrix(R))))
 
 
-@pytest.mark.parametrize("mount,scaled", [(True, False), (False, True), (True, True)])
-def test_the_odometry_edge_has_gtsams_error_and_the_right_jacobians(mount, scaled):
-    """inertial_graph.odometry_edge with the mounting refined and / or the odometry's scale
-    (backend.odometry_scale_sigma): gtsam's BetweenFactorPose3 at the mounting and scale
-    assumed, and analytic Jacobians equal to numeric ones away from them."""
+def test_the_mount_edge_has_gtsams_error_and_the_right_jacobians():
     rng = np.random.default_rng(1)
     poses = [gtsam.Pose3.Expmap(rng.normal(size=6)) for _ in range(3)]
-    factor = inertial_graph.odometry_edge(poses[2].matrix(), gtsam.noiseModel.Unit.Create(6),
-                                          (X(0), X(1)), mount, scaled)
+    edge = BetweenFactor(0, 1, poses[2].matrix(), np.eye(6), None, False)
+    factor = inertial_graph.mount_edge(edge, gtsam.noiseModel.Unit.Create(6))
     values = gtsam.Values()
     values.insert(X(0), poses[0])
     values.insert(X(1), poses[1])
-    dims = [(X(0), 6), (X(1), 6)]
-    if mount:
-        values.insert(inertial_graph.MOUNT, gtsam.Rot3())
-        dims.append((inertial_graph.MOUNT, 3))
-    if scaled:
-        values.insert(inertial_graph.SCALE, np.zeros(1))
-        dims.append((inertial_graph.SCALE, 1))
-    # the mounting and scale as assumed: exactly gtsam's BetweenFactorPose3
+    values.insert(inertial_graph.MOUNT, gtsam.Rot3())
+    # the mounting as assumed: exactly gtsam's BetweenFactorPose3
     between = gtsam.BetweenFactorPose3(X(0), X(1), poses[2], gtsam.noiseModel.Unit.Create(6))
     assert np.allclose(factor.unwhitenedError(values), between.unwhitenedError(values))
-    if mount:
-        values.update(inertial_graph.MOUNT, gtsam.Rot3.Expmap(rng.normal(size=3) * 0.1))
-    if scaled:
-        values.update(inertial_graph.SCALE, np.array([0.03]))
+    values.update(inertial_graph.MOUNT, gtsam.Rot3.Expmap(rng.normal(size=3) * 0.1))
     A, _ = factor.linearize(values).jacobian()
+    dims = [(X(0), 6), (X(1), 6), (inertial_graph.MOUNT, 3)]
     e0, h, numeric = factor.unwhitenedError(values), 1e-6, []
     for key, dim in dims:
         for d in range(dim):

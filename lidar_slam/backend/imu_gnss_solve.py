@@ -272,34 +272,11 @@ def _inertial_odometry(cfg: SlamConfig, edges: list[BetweenFactor],
 
 def _mounted(edges: list[BetweenFactor], D: np.ndarray | None) -> list[BetweenFactor]:
     """Edges between IMU frames as between the frames of the IMU turned by D (T_imu_imu'):
-    T_i_j -> D^-1 T_i_j D, what inertial_graph.odometry_edge measures."""
+    T_i_j -> D^-1 T_i_j D, what inertial_graph.mount_edge measures."""
     if D is None:
         return edges
     D_inv = inverse(D)
     return [dataclasses.replace(e, T_i_j=D_inv @ e.T_i_j @ D) for e in edges]
-
-
-def _scale(sol: inertial_graph.InertialSolution) -> float:
-    """1 + s, the odometry's scale the solve found (1 when it had no scale state)."""
-    est = sol.estimate
-    if est is None or not est.exists(inertial_graph.SCALE):
-        return 1.0
-    return 1.0 + float(est.atVector(inertial_graph.SCALE)[0])
-
-
-def _scaled(edges: list[BetweenFactor], scale: float) -> list[BetweenFactor]:
-    """The odometry edges with their translations times scale (what the solve's scaled edges
-    measured: their residuals are against these); loops as they are."""
-    if scale == 1.0:
-        return edges
-    out = []
-    for e in edges:
-        if not e.is_loop:
-            T = e.T_i_j.copy()
-            T[:3, 3] *= scale
-            e = dataclasses.replace(e, T_i_j=T)
-        out.append(e)
-    return out
 
 
 def _refined(cfg: SlamConfig, C: np.ndarray) -> dict:
@@ -529,7 +506,6 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     mount_sigma = None if not links or sigma_deg is None else float(np.radians(sigma_deg))
 
     drift = None  # white fractions of the odometry's drift state, once known
-    scale_sigma = cfg.backend.odometry_scale_sigma if links else None
 
     def run(used: np.ndarray) -> inertial_graph.InertialSolution:
         factors = [] if tied is None else [
@@ -539,8 +515,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         return inertial_graph.solve(poses, velocities, imu_edges, links, factors,
                                     prior_mean, prior_cov, BIAS_SIGMA, GNSS_HUBER_K,
                                     cfg.backend.max_iterations, RELATIVE_TOL,
-                                    covariances=False, mount_sigma_rad=mount_sigma, drift=drift,
-                                    scale_sigma=scale_sigma)
+                                    covariances=False, mount_sigma_rad=mount_sigma, drift=drift)
 
     def lidar_poses(sol: inertial_graph.InertialSolution) -> dict[int, np.ndarray]:
         D_inv = np.eye(4) if sol.mount_correction is None else inverse(sol.mount_correction)
@@ -549,7 +524,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     used = alignment.inlier.copy() if tied is not None else np.zeros(0, dtype=bool)
     sol = run(used)
     if links:  # the odometry's own weights, checked against the IMU (see odometry_variance)
-        mounted = _scaled(_mounted(imu_edges, sol.mount_correction), _scale(sol))
+        mounted = _mounted(imu_edges, sol.mount_correction)
         white, own = (0.0, 0.0), {}
         if cfg.backend.odometry_drift_state:
             white = odometry_white_fractions(mounted, sol.poses)
@@ -589,8 +564,6 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
             f"{len(used) - int(used.sum())} of {len(used)} fixes rejected: the geo-reference "
             f"rests on the {int(used.sum())} kept")
     sol = sol.with_covariances()  # of the last solve only
-    if _scale(sol) != 1.0:
-        summary["imu"]["odometry_scale"] = round(_scale(sol), 6)
     T_S_lidar = lidar_poses(sol)
     if sol.mount_correction is not None:  # the nodes are the IMU turned by it
         C = C @ sol.mount_correction

@@ -19,13 +19,10 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, F, R, S, V, X
+from gtsam.symbol_shorthand import B, F, R, V, X
 
 from lidar_slam.backend.factors import BetweenFactor
 
-# The odometry's scale error s (a 1-vector): the odometry's translations are (1 + s) x the
-# motion's, when the solve estimates it (scale_sigma)
-SCALE = S(0)
 MOUNT = R(0)  # the correction of R_lidar_imu, when the solve refines it (mount_sigma_rad)
 
 
@@ -89,17 +86,14 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
           prior_pose: np.ndarray, prior_covariance: np.ndarray, bias_sigma: np.ndarray,
           gnss_huber_k: float, max_iterations: int, relative_error_tol: float,
           covariances: bool = True, mount_sigma_rad: float | None = None,
-          drift: tuple[float, float] | None = None,
-          scale_sigma: float | None = None) -> InertialSolution:
+          drift: tuple[float, float] | None = None) -> InertialSolution:
     """LM from the initial poses (T_S_node) and velocities (keyframes with IMU states), biases
     zero; the first keyframe's pose has a prior (mean, 6x6 covariance in its frame) and the first
     bias of every chain of IMU links a zero-mean prior (bias_sigma, 6: accelerometer then gyro).
     mount_sigma_rad: the IMU's mounting rotation is refined too (a rotation of the IMU frame
-    the edges were moved into, zero-mean prior of this sigma per axis; see odometry_edge).
+    the edges were moved into, zero-mean prior of this sigma per axis; see mount_edge).
     drift: the odometry edges as a drift state instead of a chain (odometry_as_drift), with
     these white fractions (rotation, translation) of each edge's covariance.
-    scale_sigma: the odometry edges' translations are scaled by 1 + s, s (the key SCALE) a
-    state with a zero-mean prior of this sigma (see odometry_edge); loops are not.
     """
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -109,23 +103,21 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
     graph.add(gtsam.PriorFactorPose3(X(first), gtsam.Pose3(prior_pose),
                                      gtsam.noiseModel.Gaussian.Covariance(prior_covariance)))
     noises: dict = {}
-    mount, scaled = mount_sigma_rad is not None, scale_sigma is not None
-    if scaled:
-        values.insert(SCALE, np.zeros(1))
-        graph.add(gtsam.PriorFactorVector(SCALE, np.zeros(1),
-                                          gtsam.noiseModel.Isotropic.Sigma(1, scale_sigma)))
     if drift is not None:
         odometry = [e for e in edges if not e.is_loop]
         edges = [e for e in edges if e.is_loop]
-        for factor in odometry_as_drift(odometry, poses, values, drift, mount=mount,
-                                        scaled=scaled):
+        for factor in odometry_as_drift(odometry, poses, values, drift,
+                                        mount=mount_sigma_rad is not None):
             graph.add(factor)
     for e in edges:
         key = (id(e.information), e.robust_k)
         if key not in noises:
             noises[key] = _noise(e.information, e.robust_k)
-        graph.add(odometry_edge(e.T_i_j, noises[key], (X(e.i), X(e.j)), mount,
-                                scaled and not e.is_loop))
+        if mount_sigma_rad is None:
+            graph.add(gtsam.BetweenFactorPose3(X(e.i), X(e.j), gtsam.Pose3(e.T_i_j),
+                                               noises[key]))
+        else:
+            graph.add(mount_edge(e, noises[key]))
     if mount_sigma_rad is not None:
         values.insert(MOUNT, gtsam.Rot3())
         graph.add(gtsam.PriorFactorRot3(MOUNT, gtsam.Rot3(),
@@ -176,8 +168,8 @@ WALK_MIN = 0.05  # of an edge's variance (per whitened direction) stays in the w
 
 
 def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
-                      values: gtsam.Values, white: tuple[float, float], mount: bool = False,
-                      scaled: bool = False) -> list:
+                      values: gtsam.Values, white: tuple[float, float], mount: bool = False
+                      ) -> list:
     """The odometry edges (a chain i -> j, sorted by i) as a drift state: per keyframe k a pose
     F(k) = T_S_odom, where the odometry's own world lies, and the odometry's pose O_k (the
     edges composed from the start of their chain) measured from it, X_k = F_k O_k Exp(w_k),
@@ -194,9 +186,7 @@ def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
     direction), moved into F's frame by Ad(O_j). So an edge across an odometry reset (kiss-icp's
     threshold added to its covariance) is a jump of the drift, not white noise of the keyframe
     after it. Both Huber (the edge's robust_k). Inserts F's initial values (X_k O_k^-1) into
-    values. mount: the nodes' IMU is turned by MOUNT (see odometry_edge), so is each O_k;
-    scaled: O_k's translation is (1 + s) x, s the key SCALE (the same as every edge's: O_k is
-    their composition from the chain's start, a translation in the start's frame)."""
+    values. mount: the nodes' IMU is turned by MOUNT (see mount_edge), so is each O_k."""
     S = np.diag(np.sqrt([white[0]] * 3 + [white[1]] * 3))
     chain = sorted(edges, key=lambda e: e.i)
     seen: set[int] = set()
@@ -219,7 +209,9 @@ def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
 
     def white_factor(k: int, robust_k: float | None):
         noise = _noise(np.linalg.inv(0.5 * (W[k] + W[k].T)), robust_k)
-        return odometry_edge(odom[k], noise, (F(k), X(k)), mount, scaled)
+        if mount:
+            return mount_edge(BetweenFactor(k, k, odom[k], np.eye(6)), noise, (F(k), X(k)))
+        return gtsam.BetweenFactorPose3(F(k), X(k), gtsam.Pose3(odom[k]), noise)
 
     for e, C in zip(chain, cov):
         if e.i not in odom:  # the start of a chain: its own drift state
@@ -243,44 +235,29 @@ def odometry_as_drift(edges: list[BetweenFactor], poses: dict[int, np.ndarray],
     return out
 
 
-def odometry_edge(T_i_j: np.ndarray, noise, keys: tuple[int, int], mount: bool = False,
-                  scaled: bool = False):
-    """A measurement T_i_j between the poses of keys (ki, kj): gtsam's BetweenFactorPose3, or,
-    when the solve refines the IMU's mounting (mount: the key MOUNT, D = T_imu_imu') or the
-    odometry's scale (scaled: the key SCALE, s), a factor that measures D^-1 Z D with Z =
-    (R_ij, (1 + s) t_ij). Error as gtsam's BetweenFactorPose3 (Logmap of measured^-1 X_i^-1
-    X_j), Jacobians by gtsam's own."""
-    ki, kj = keys
-    if not mount and not scaled:
-        return gtsam.BetweenFactorPose3(ki, kj, gtsam.Pose3(T_i_j), noise)
-    R_ij, t_ij = gtsam.Rot3(T_i_j[:3, :3]), T_i_j[:3, 3]
-    dZ_ds = np.concatenate([np.zeros(3), T_i_j[:3, :3].T @ t_ij])[:, None]  # in Z's tangent
+def mount_edge(e: BetweenFactor, noise, keys: tuple[int, int] | None = None
+               ) -> gtsam.CustomFactor:
+    """The edge e (T_i_j between IMU frames at the mounting assumed) between nodes whose IMU is
+    turned by D (the key MOUNT, T_imu_imu'): it measures D^-1 T_i_j D. Error as gtsam's
+    BetweenFactorPose3 (Logmap of measured^-1 X_i^-1 X_j), Jacobians by gtsam's own.
+    keys: the two gtsam keys (default X(e.i), X(e.j))."""
+    Z = gtsam.Pose3(e.T_i_j)
+    ki, kj = keys if keys is not None else (X(e.i), X(e.j))
 
     def error(this, values, H):
         Hi, Hj, Ha, Hb, Hz, Hm1, Hm2, He1, He2, Hl = (np.zeros((6, 6), order="F")
                                                        for _ in range(10))
         hx = values.atPose3(ki).between(values.atPose3(kj), Hi, Hj)
-        s = float(values.atVector(SCALE)[0]) if scaled else 0.0
-        Z = gtsam.Pose3(R_ij, (1.0 + s) * t_ij)
-        if mount:
-            D = gtsam.Pose3(values.atRot3(MOUNT), np.zeros(3))
-            M = D.inverse(Ha).compose(Z, Hb, Hz).compose(D, Hm1, Hm2)
-            dM_dZ = Hm1 @ Hz
-        else:
-            M, dM_dZ = Z, np.eye(6)
+        D = gtsam.Pose3(values.atRot3(MOUNT), np.zeros(3))
+        M = D.inverse(Ha).compose(Z, Hb, Hz).compose(D, Hm1, Hm2)
         err = gtsam.Pose3.Logmap(M.between(hx, He1, He2), Hl)
         if H is not None:
             H[0] = Hl @ He2 @ Hi
             H[1] = Hl @ He2 @ Hj
-            n = 2
-            if mount:
-                H[n] = Hl @ He1 @ (Hm1 @ Hb @ Ha + Hm2) @ _SELECT_ROTATION
-                n += 1
-            if scaled:
-                H[n] = Hl @ He1 @ dM_dZ @ dZ_ds
+            H[2] = Hl @ He1 @ (Hm1 @ Hb @ Ha + Hm2) @ _SELECT_ROTATION
         return err
 
-    return gtsam.CustomFactor(noise, [ki, kj] + [MOUNT] * mount + [SCALE] * scaled, error)
+    return gtsam.CustomFactor(noise, [ki, kj, MOUNT], error)
 
 
 def pose_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
@@ -316,8 +293,7 @@ def _lu_covariances(gfg: gtsam.GaussianFactorGraph, keys: list[int]) -> dict[int
     offsets, n = {}, 0
     for key in sorted(gfg.keys()):  # sparseJacobian_'s column order: keys sorted, then b
         offsets[key] = n
-        c = gtsam.Symbol(key).chr()
-        n += 3 if c in (ord("v"), ord("r")) else 1 if c == ord("s") else 6  # pose, bias: 6
+        n += 3 if gtsam.Symbol(key).chr() in (ord("v"), ord("r")) else 6  # pose, bias: 6
     rows, cols, vals = gfg.sparseJacobian_()
     inside = cols <= n  # 1-based; the last column is b
     J = csc_matrix((vals[inside], (rows[inside].astype(int) - 1, cols[inside].astype(int) - 1)))
