@@ -182,6 +182,27 @@ def test_a_drift_state_with_consistent_edges_keeps_the_odometry_poses():
         assert np.all(np.linalg.eigvalsh(sol.covariances[len(poses) - 1]) > 0)
 
 
+def test_the_odometry_scale_error_widens_the_covariance_along_the_path_only(drive):
+    """backend.odometry_scale_sigma: the odometry's scale error (the same sign on every edge,
+    which no edge's variance carries) as a consider parameter: the poses are exactly those
+    without it, and the last keyframe's sd along the drive grows by about sigma x the distance
+    (in quadrature) while the other axes keep theirs."""
+    out, sd = {}, {}
+    last = len(drive.edges)
+    for sigma in (None, 0.0005):
+        cfg = drive.cfg.model_copy(update={"backend": drive.cfg.backend.model_copy(
+            update={"odometry_scale_sigma": sigma})})
+        out[sigma] = solver.solve(cfg, drive.T_world_kf, drive.edges, drive.trajectory(),
+                                  drive.imu, None)
+        sd[sigma] = np.sqrt(np.diag(out[sigma].covariances[last][3:, 3:]))
+    for k, T in out[None].kf_poses.items():
+        np.testing.assert_array_equal(out[0.0005].kf_poses[k], T)
+    distance = np.linalg.norm(out[None].kf_poses[last][:3, 3])  # ~364 m, x ahead
+    grown = np.sqrt(sd[0.0005][0] ** 2 - sd[None][0] ** 2)
+    assert 0.7 * 0.0005 * distance < grown < 1.2 * 0.0005 * distance, (sd, distance)
+    np.testing.assert_allclose(sd[0.0005][1:], sd[None][1:], rtol=0.05)
+
+
 def test_an_odometry_reset_is_a_jump_of_the_drift_not_noise_of_the_keyframe_after_it():
     """Keyframes 1 m apart on a line; the edge 10 -> 11 crosses an odometry reset: measured 1 m
     too long, its covariance grown by kiss-icp's threshold (1 m). A position fix pulls keyframe

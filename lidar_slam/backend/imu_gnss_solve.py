@@ -279,6 +279,18 @@ def _mounted(edges: list[BetweenFactor], D: np.ndarray | None) -> list[BetweenFa
     return [dataclasses.replace(e, T_i_j=D_inv @ e.T_i_j @ D) for e in edges]
 
 
+def _scaled(edges: list[BetweenFactor], scale: float) -> list[BetweenFactor]:
+    """The odometry edges with their translations times scale; loops as they are."""
+    out = []
+    for e in edges:
+        if not e.is_loop:
+            T = e.T_i_j.copy()
+            T[:3, 3] *= scale
+            e = dataclasses.replace(e, T_i_j=T)
+        out.append(e)
+    return out
+
+
 def _refined(cfg: SlamConfig, C: np.ndarray) -> dict:
     """summary.json's record of the mounting the final solve refined (T_lidar_imu 4x4 row by
     row) and how far it turned from the one the run started with (deg)."""
@@ -507,11 +519,14 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
 
     drift = None  # white fractions of the odometry's drift state, once known
 
-    def run(used: np.ndarray) -> inertial_graph.InertialSolution:
-        factors = [] if tied is None else [
+    def gnss_factors(used: np.ndarray) -> list[inertial_graph.GnssFactor]:
+        return [] if tied is None else [
             inertial_graph.GnssFactor(k, tied.enu_m[f], Cn_inv[k][:3, :3] @ tied.arm_kf_m[f]
                                       + Cn_inv[k][:3, 3], tied.sigma_m[f])
             for f in np.flatnonzero(used) for k in [int(tied.keyframe[f])]]
+
+    def run(used: np.ndarray) -> inertial_graph.InertialSolution:
+        factors = gnss_factors(used)
         return inertial_graph.solve(poses, velocities, imu_edges, links, factors,
                                     prior_mean, prior_cov, BIAS_SIGMA, GNSS_HUBER_K,
                                     cfg.backend.max_iterations, RELATIVE_TOL,
@@ -564,6 +579,18 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
             f"{len(used) - int(used.sum())} of {len(used)} fixes rejected: the geo-reference "
             f"rests on the {int(used.sum())} kept")
     sol = sol.with_covariances()  # of the last solve only
+    scale_sigma = cfg.backend.odometry_scale_sigma
+    if links and scale_sigma is not None and sol.covariances:
+        # The odometry's scale as a consider parameter: how far the solution moves when every
+        # odometry translation is scale_sigma longer (one Gauss-Newton step from it, the same
+        # graph otherwise), added to each pose's covariance
+        vel = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
+        graph, _ = inertial_graph.build(sol.poses, vel, _scaled(imu_edges, 1.0 + scale_sigma),
+                                        links, gnss_factors(used), prior_mean, prior_cov,
+                                        BIAS_SIGMA, GNSS_HUBER_K, mount_sigma, drift)
+        step = inertial_graph.pose_steps(graph, sol.estimate, list(sol.covariances))
+        covs = {k: c + np.outer(step[k], step[k]) for k, c in sol.covariances.items()}
+        sol = dataclasses.replace(sol, covariances=covs)
     T_S_lidar = lidar_poses(sol)
     if sol.mount_correction is not None:  # the nodes are the IMU turned by it
         C = C @ sol.mount_correction

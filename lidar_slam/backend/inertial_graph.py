@@ -81,20 +81,13 @@ def _noise(information: np.ndarray, robust_k: float | None):
     return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), base)
 
 
-def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
+def build(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
           edges: list[BetweenFactor], links: list[ImuLink], gnss: list[GnssFactor],
           prior_pose: np.ndarray, prior_covariance: np.ndarray, bias_sigma: np.ndarray,
-          gnss_huber_k: float, max_iterations: int, relative_error_tol: float,
-          covariances: bool = True, mount_sigma_rad: float | None = None,
-          drift: tuple[float, float] | None = None) -> InertialSolution:
-    """LM from the initial poses (T_S_node) and velocities (keyframes with IMU states), biases
-    zero; the first keyframe's pose has a prior (mean, 6x6 covariance in its frame) and the first
-    bias of every chain of IMU links a zero-mean prior (bias_sigma, 6: accelerometer then gyro).
-    mount_sigma_rad: the IMU's mounting rotation is refined too (a rotation of the IMU frame
-    the edges were moved into, zero-mean prior of this sigma per axis; see mount_edge).
-    drift: the odometry edges as a drift state instead of a chain (odometry_as_drift), with
-    these white fractions (rotation, translation) of each edge's covariance.
-    """
+          gnss_huber_k: float, mount_sigma_rad: float | None = None,
+          drift: tuple[float, float] | None = None
+          ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """The graph solve() optimises (see there) and its initial values."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     first = min(poses)
@@ -139,6 +132,25 @@ def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
             np.asarray(g.sigma_m, dtype=float)))
         graph.add(gtsam.GPSFactorArm(X(g.key), np.asarray(g.enu_m, dtype=float),
                                      np.asarray(g.arm_m, dtype=float), model))
+    return graph, values
+
+
+def solve(poses: dict[int, np.ndarray], velocities: dict[int, np.ndarray],
+          edges: list[BetweenFactor], links: list[ImuLink], gnss: list[GnssFactor],
+          prior_pose: np.ndarray, prior_covariance: np.ndarray, bias_sigma: np.ndarray,
+          gnss_huber_k: float, max_iterations: int, relative_error_tol: float,
+          covariances: bool = True, mount_sigma_rad: float | None = None,
+          drift: tuple[float, float] | None = None) -> InertialSolution:
+    """LM from the initial poses (T_S_node) and velocities (keyframes with IMU states), biases
+    zero; the first keyframe's pose has a prior (mean, 6x6 covariance in its frame) and the first
+    bias of every chain of IMU links a zero-mean prior (bias_sigma, 6: accelerometer then gyro).
+    mount_sigma_rad: the IMU's mounting rotation is refined too (a rotation of the IMU frame
+    the edges were moved into, zero-mean prior of this sigma per axis; see mount_edge).
+    drift: the odometry edges as a drift state instead of a chain (odometry_as_drift), with
+    these white fractions (rotation, translation) of each edge's covariance.
+    """
+    graph, values = build(poses, velocities, edges, links, gnss, prior_pose, prior_covariance,
+                          bias_sigma, gnss_huber_k, mount_sigma_rad, drift)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_error_tol)
@@ -280,6 +292,41 @@ def pose_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return _lu_covariances(gfg, keys)
 
 
+def pose_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+               keys: list[int]) -> dict[int, np.ndarray]:
+    """One Gauss-Newton step of graph from values: its 6-vector (rotation first, node frame) for
+    every pose X(k). Eliminated as pose_covariances does (METIS, COLAMD, then a sparse LU)."""
+    gfg = graph.linearize(values)
+    for ordering in (gtsam.Ordering.MetisGaussianFactorGraph,
+                     gtsam.Ordering.ColamdGaussianFactorGraph):
+        try:
+            step = gfg.optimize(ordering(gfg))
+            return {k: np.asarray(step.at(X(k)), dtype=np.float64) for k in keys}
+        except RuntimeError:  # gtsam's IndeterminantLinearSystemException
+            continue
+    from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import splu
+
+    offsets, n = _offsets(gfg)
+    rows, cols, vals = gfg.sparseJacobian_()
+    r, c = rows.astype(int) - 1, cols.astype(int) - 1
+    inside = c < n
+    J = csc_matrix((vals[inside], (r[inside], c[inside])))
+    b = np.zeros(J.shape[0])
+    np.add.at(b, r[~inside], vals[~inside])
+    x = splu(csc_matrix(J.T @ J), permc_spec="MMD_AT_PLUS_A").solve(J.T @ b)
+    return {k: x[offsets[X(k)]:offsets[X(k)] + 6] for k in keys}
+
+
+def _offsets(gfg: gtsam.GaussianFactorGraph) -> tuple[dict[int, int], int]:
+    """Column offset of every key in gtsam's sparseJacobian_ (keys sorted), and the count."""
+    offsets, n = {}, 0
+    for key in sorted(gfg.keys()):
+        offsets[key] = n
+        n += 3 if gtsam.Symbol(key).chr() in (ord("v"), ord("r")) else 6  # pose, bias: 6
+    return offsets, n
+
+
 def _symmetric(cov) -> np.ndarray:
     cov = np.asarray(cov, dtype=np.float64)
     return 0.5 * (cov + cov.T)
@@ -290,10 +337,7 @@ def _lu_covariances(gfg: gtsam.GaussianFactorGraph, keys: list[int]) -> dict[int
     from scipy.sparse import csc_matrix
     from scipy.sparse.linalg import splu
 
-    offsets, n = {}, 0
-    for key in sorted(gfg.keys()):  # sparseJacobian_'s column order: keys sorted, then b
-        offsets[key] = n
-        n += 3 if gtsam.Symbol(key).chr() in (ord("v"), ord("r")) else 6  # pose, bias: 6
+    offsets, n = _offsets(gfg)  # sparseJacobian_'s column order: keys sorted, then b
     rows, cols, vals = gfg.sparseJacobian_()
     inside = cols <= n  # 1-based; the last column is b
     J = csc_matrix((vals[inside], (rows[inside].astype(int) - 1, cols[inside].astype(int) - 1)))
