@@ -583,9 +583,9 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     if links and scale_sigma is not None and sol.covariances:
         # The odometry's scale as a consider parameter: how far the solution moves when every
         # odometry translation is scale_sigma longer (one Gauss-Newton step from it, the same
-        # graph otherwise), added to each pose's covariance
-        vel = {k: sol.velocities.get(k, v) for k, v in velocities.items()}
-        graph, _ = inertial_graph.build(sol.poses, vel, _scaled(imu_edges, 1.0 + scale_sigma),
+        # graph otherwise, linearised at the solution), added to each pose's covariance
+        graph, _ = inertial_graph.build(sol.poses, velocities,
+                                        _scaled(imu_edges, 1.0 + scale_sigma),
                                         links, gnss_factors(used), prior_mean, prior_cov,
                                         BIAS_SIGMA, GNSS_HUBER_K, mount_sigma, drift)
         step = inertial_graph.pose_steps(graph, sol.estimate, list(sol.covariances))

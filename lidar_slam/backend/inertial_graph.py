@@ -304,27 +304,28 @@ def pose_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             return {k: np.asarray(step.at(X(k)), dtype=np.float64) for k in keys}
         except RuntimeError:  # gtsam's IndeterminantLinearSystemException
             continue
-    from scipy.sparse import csc_matrix
-    from scipy.sparse.linalg import splu
-
-    offsets, n = _offsets(gfg)
-    rows, cols, vals = gfg.sparseJacobian_()
-    r, c = rows.astype(int) - 1, cols.astype(int) - 1
-    inside = c < n
-    J = csc_matrix((vals[inside], (r[inside], c[inside])))
-    b = np.zeros(J.shape[0])
-    np.add.at(b, r[~inside], vals[~inside])
-    x = splu(csc_matrix(J.T @ J), permc_spec="MMD_AT_PLUS_A").solve(J.T @ b)
+    offsets, lu, Jtb = _normal_equations(gfg)
+    x = lu.solve(Jtb)
     return {k: x[offsets[X(k)]:offsets[X(k)] + 6] for k in keys}
 
 
-def _offsets(gfg: gtsam.GaussianFactorGraph) -> tuple[dict[int, int], int]:
-    """Column offset of every key in gtsam's sparseJacobian_ (keys sorted), and the count."""
+def _normal_equations(gfg: gtsam.GaussianFactorGraph):
+    """gtsam's linear system (min |J x - b|) as sparse normal equations: the column offset of
+    every key (sparseJacobian_'s order: keys sorted, then b), the sparse LU of J^T J, J^T b."""
+    from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import splu
+
     offsets, n = {}, 0
     for key in sorted(gfg.keys()):
         offsets[key] = n
         n += 3 if gtsam.Symbol(key).chr() in (ord("v"), ord("r")) else 6  # pose, bias: 6
-    return offsets, n
+    rows, cols, vals = gfg.sparseJacobian_()
+    r, c = rows.astype(int) - 1, cols.astype(int) - 1  # 1-based
+    inside = c < n  # the last column is b
+    J = csc_matrix((vals[inside], (r[inside], c[inside])), shape=(int(r.max()) + 1, n))
+    b = np.zeros(J.shape[0])
+    np.add.at(b, r[~inside], vals[~inside])
+    return offsets, splu(csc_matrix(J.T @ J), permc_spec="MMD_AT_PLUS_A"), J.T @ b
 
 
 def _symmetric(cov) -> np.ndarray:
@@ -334,14 +335,8 @@ def _symmetric(cov) -> np.ndarray:
 
 def _lu_covariances(gfg: gtsam.GaussianFactorGraph, keys: list[int]) -> dict[int, np.ndarray]:
     """The pose blocks of the inverse Hessian by a sparse LU (slow: ~1 ms per pose)."""
-    from scipy.sparse import csc_matrix
-    from scipy.sparse.linalg import splu
-
-    offsets, n = _offsets(gfg)  # sparseJacobian_'s column order: keys sorted, then b
-    rows, cols, vals = gfg.sparseJacobian_()
-    inside = cols <= n  # 1-based; the last column is b
-    J = csc_matrix((vals[inside], (rows[inside].astype(int) - 1, cols[inside].astype(int) - 1)))
-    lu = splu(csc_matrix(J.T @ J), permc_spec="MMD_AT_PLUS_A")
+    offsets, lu, Jtb = _normal_equations(gfg)
+    n = len(Jtb)
     out = {}
     for chunk in range(0, len(keys), 64):  # 64 poses' columns at a time: bounded memory
         part = keys[chunk:chunk + 64]
