@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
@@ -539,3 +541,33 @@ def test_gnss_in_epoch_seconds_with_scans_from_zero_is_another_clock(tmp_path):
     _write(tmp_path / "gnss.csv", GNSS_HEADER, rows.tolist())
     with pytest.raises(InputError, match="do not overlap the scans"):
         load_inertial(tmp_path, np.arange(100) * 0.1, imu_enabled=False, gnss_enabled=True)
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 300), cols=st.integers(0, 3), half=st.integers(0, 40),
+       quantile=st.floats(0.0, 0.999), seed=st.integers(0, 2**31 - 1),
+       ties=st.booleans())
+def test_running_rank_equals_scipys_rank_filter(n, cols, half, quantile, seed, ties):
+    """The glitch filter's running median and percentile (NumPy, to spare every IMU run
+    scipy.ndimage's ~0.2 s import) are scipy.ndimage's, ends, ties and windows wider than the
+    data included, across block boundaries too."""
+    from scipy.ndimage import rank_filter
+
+    from lidar_slam.io import imu_gnss
+
+    rng = np.random.default_rng(seed)
+    shape = (n,) if cols == 0 else (n, cols)
+    x = rng.normal(size=shape)
+    if ties:
+        x = np.round(x)
+    size = 2 * half + 1
+    rank = int(size * quantile)
+    footprint = (size,) if cols == 0 else (size, 1)
+    want = rank_filter(x, rank, size=footprint, mode="nearest")
+    got = imu_gnss.running_rank(x, size, rank)
+    assert np.array_equal(got, want)
+    old, imu_gnss.RANK_BLOCK = imu_gnss.RANK_BLOCK, 7  # several blocks
+    try:
+        assert np.array_equal(imu_gnss.running_rank(x, size, rank), want)
+    finally:
+        imu_gnss.RANK_BLOCK = old

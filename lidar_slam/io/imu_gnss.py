@@ -193,10 +193,30 @@ def read_imu_csv(path: str | Path) -> ImuSamples:
     return imu_from_rows(p, rows, read_as=read_as)
 
 
+RANK_BLOCK = 4096  # rows per block of running_rank (a block's windows: ~13 MB at 401 wide)
+
+
+def running_rank(x: np.ndarray, size: int, rank: int) -> np.ndarray:
+    """scipy.ndimage.rank_filter(x, rank, size=(size, 1, ...), mode="nearest"): the rank-th
+    smallest (0-based) of each centred window of `size` (odd) rows, per column, the ends
+    repeated. In NumPy (sliding windows, np.partition): importing scipy.ndimage costs ~0.2 s
+    of every run with an IMU, a short walk's 4 %; this takes 0.07 s on 8,000 samples (1 s
+    windows), 3 s on an hour at 200 Hz. tests/test_inertial.py checks it equals scipy's."""
+    if size % 2 != 1 or not 0 <= rank < size:
+        raise ValueError(f"running_rank: size {size} must be odd and rank {rank} in [0, size)")
+    half = size // 2
+    padded = np.pad(x, [(half, half)] + [(0, 0)] * (x.ndim - 1), mode="edge")
+    out = np.empty_like(x)
+    for start in range(0, len(x), RANK_BLOCK):
+        n = min(RANK_BLOCK, len(x) - start)
+        windows = np.lib.stride_tricks.sliding_window_view(
+            padded[start:start + n + size - 1], size, axis=0)
+        out[start:start + n] = np.partition(windows, rank, axis=-1)[..., rank]
+    return out
+
+
 def _glitches(rows: np.ndarray, usable: np.ndarray) -> np.ndarray:
     """Rows (of those usable) whose specific force or rate is a glitch (GLITCH_FACTOR)."""
-    from scipy.ndimage import median_filter, percentile_filter
-
     out = np.zeros(len(rows), dtype=bool)
     index = np.flatnonzero(usable)
     if len(index) < 5:
@@ -206,8 +226,11 @@ def _glitches(rows: np.ndarray, usable: np.ndarray) -> np.ndarray:
     half = int(min(GLITCH_WINDOW_S / period, len(index))) if period > 0 else len(index)
     for cols, floor in ((slice(4, 7), GLITCH_FLOOR[0]), (slice(1, 4), GLITCH_FLOOR[1])):
         x = rows[index, cols]
-        jump = np.linalg.norm(x - median_filter(x, size=(5, 1), mode="nearest"), axis=1)
-        local = percentile_filter(jump, 99, size=2 * half + 1, mode="nearest")
+        # a 5-sample running median, and the 99th percentile within +-half (scipy.ndimage's
+        # median_filter and percentile_filter, mode "nearest": rank int(size * 0.99))
+        jump = np.linalg.norm(x - running_rank(x, 5, 2), axis=1)
+        size = 2 * half + 1
+        local = running_rank(jump, size, int(size * 99 / 100))
         out[index[jump > GLITCH_FACTOR * np.maximum(local, floor)]] = True
     return out
 
