@@ -373,16 +373,15 @@ def _gyro_motion(gyro: GyroIntegral, R: np.ndarray, offset_s: float, t_ref_s: fl
     """The sweep's motion (frontend.deskew.SweepMotion, relative to its reference instant)
     with the rotation the gyro read (put in the lidar frame by R, on the scans' clock by
     offset_s) and the translation at constant velocity."""
-    from scipy.spatial.transform import Rotation
-
     from lidar_slam.frontend.deskew import SweepMotion
+    from lidar_slam.geometry import matrices_from_rotvecs
 
     knots = np.linspace(sweep_s[0], sweep_s[1], GYRO_KNOTS) - ref_s
     if not knots[-1] > knots[0]:
         return None
     rv, _ = gyro.over(np.full(len(knots), t_ref_s - offset_s), t_ref_s + knots - offset_s)
     T = np.tile(np.eye(4), (len(knots), 1, 1))
-    T[:, :3, :3] = Rotation.from_rotvec(rv @ R.T).as_matrix()
+    T[:, :3, :3] = matrices_from_rotvecs(rv @ R.T)
     T[:, :3, 3] = knots[:, None] / period_s * T_prev_curr[:3, 3]
     return SweepMotion(knots, T)
 

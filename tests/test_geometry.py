@@ -55,3 +55,30 @@ def test_inverse_relative_and_interpolate():
     np.testing.assert_allclose(g.interpolate(A, B, 0.0), A, atol=1e-12)
     np.testing.assert_allclose(g.interpolate(A, B, 1.0), B, atol=1e-12)
     np.testing.assert_allclose(g.from_xyz_quat(g.to_xyz_quat(A)), A, atol=1e-12)
+
+
+def test_slerp_and_rodrigues_equal_scipys():
+    """geometry.Slerp (the IMU check's rotation between frames) and the vectorised Rodrigues
+    helpers are scipy's Slerp / Rotation.from_rotvec, on knots, between them, at the ends, for
+    zero and tiny turns; times outside the knots are refused as scipy refuses them."""
+    import pytest
+    from scipy.spatial.transform import Slerp
+
+    rng = np.random.default_rng(7)
+    t = np.cumsum(rng.uniform(0.01, 0.2, 40))
+    R = Rotation.random(40, random_state=3).as_matrix()
+    R[5] = R[4]  # an interval without a turn
+    tq = np.concatenate([rng.uniform(t[0], t[-1], 500), t])
+    v = rng.normal(size=(len(tq), 3))
+    want = Slerp(t, Rotation.from_matrix(R))(tq)
+    ours = g.Slerp(t, R)
+    assert np.allclose(ours.apply(tq, v), want.apply(v), atol=1e-13)
+    assert np.allclose(ours.matrices(tq), want.as_matrix(), atol=1e-13)
+    with pytest.raises(ValueError):
+        ours.apply(np.array([t[0] - 1e-3]), v[:1])
+    rv = rng.normal(size=(60, 3)) * 2.0
+    rv[0], rv[1] = 0.0, 1e-14
+    assert np.allclose(g.matrices_from_rotvecs(rv), Rotation.from_rotvec(rv).as_matrix(),
+                       atol=1e-14)
+    assert np.allclose(g.rotate_by_rotvec(rv, v[:60]), Rotation.from_rotvec(rv).apply(v[:60]),
+                       atol=1e-13)

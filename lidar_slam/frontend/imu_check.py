@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar_slam.geometry import rotvec_from_matrix
+from lidar_slam.geometry import Slerp, rotvec_from_matrix
 from lidar_slam.imu import ImuStream, closest_rotation
 
 log = logging.getLogger(__name__)
@@ -277,8 +277,6 @@ def acceleration_disagreement(stream: ImuStream, stamps_s: np.ndarray, T_world_l
     odometry's accelerations from their mean. None with fewer than MIN_ACCEL_WINDOWS windows or
     a motion whose accelerations vary by less than MIN_ACCEL_VARIATION_MPS2 (RMS): too little
     to tell an accelerometer from the odometry's tilt."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     t = np.asarray(stamps_s, dtype=float)
     keep = np.concatenate(([True], np.diff(t) > 0))
     t, T = t[keep], np.asarray(T_world_lidar, dtype=float)[keep]
@@ -298,12 +296,12 @@ def acceleration_disagreement(stream: ImuStream, stamps_s: np.ndarray, T_world_l
     i0, i1 = np.searchsorted(stream.t, [lo - h, hi + h])
     ts = stream.t[max(i0 - 1, 0):i1 + 1]
     f = np.asarray(stream.samples.accel_mps2[max(i0 - 1, 0):i1 + 1], dtype=float)
-    slerp = Slerp(t, Rotation.from_matrix(T[:, :3, :3]))
+    slerp = Slerp(t, T[:, :3, :3])  # the odometry's rotation between frames
     f_imu_in_lidar = f @ T_lidar_imu[:3, :3].T
     f_world = np.empty_like(f)
     for a in range(0, len(ts), CHUNK_SAMPLES):  # an hour at 200 Hz: 52 MB of matrices at once
         b = a + CHUNK_SAMPLES
-        f_world[a:b] = slerp(np.clip(ts[a:b], t[0], t[-1])).apply(f_imu_in_lidar[a:b])
+        f_world[a:b] = slerp.apply(np.clip(ts[a:b], t[0], t[-1]), f_imu_in_lidar[a:b])
     a_imu, used = [], []
     for k, c in enumerate(centres):
         j0, j1 = np.searchsorted(ts, [c - h, c + h])
