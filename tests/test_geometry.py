@@ -82,3 +82,30 @@ def test_slerp_and_rodrigues_equal_scipys():
                        atol=1e-14)
     assert np.allclose(g.rotate_by_rotvec(rv, v[:60]), Rotation.from_rotvec(rv).apply(v[:60]),
                        atol=1e-13)
+
+
+def test_between_error_equals_gtsams():
+    """The loop worker's NumPy between_error is gtsam's BetweenFactorPose3 error: large turns,
+    near pi, tiny and zero turns."""
+    import gtsam
+
+    from lidar_slam.backend import gtsam_graph
+
+    rng = np.random.default_rng(11)
+
+    def pose(rotvec, t):
+        return gtsam.Pose3.Expmap(np.concatenate([rotvec, t])).matrix()
+
+    cases = []
+    for _ in range(300):
+        a = pose(rng.normal(size=3), rng.normal(size=3) * 5)
+        b = pose(rng.normal(size=3), rng.normal(size=3) * 5)
+        cases.append((np.linalg.inv(a) @ b @ pose(rng.normal(size=3) * 0.05,
+                                                  rng.normal(size=3) * 0.2), a, b))
+    for angle in (0.0, 1e-12, 1e-9, 1e-6, 1e-3, 3.0, np.pi - 1e-6):
+        axis = rng.normal(size=3)
+        cases.append((pose(angle * axis / np.linalg.norm(axis), rng.normal(size=3) * 3),
+                      np.eye(4), np.eye(4)))
+    for T_i_j, T_w_i, T_w_j in cases:
+        want = gtsam_graph.between_error(T_i_j, T_w_i, T_w_j)
+        assert np.allclose(g.between_error(T_i_j, T_w_i, T_w_j), want, rtol=0, atol=1e-11)

@@ -15,7 +15,7 @@ import numpy as np
 from lidar_slam.backend.factors import sigmas_to_information
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.edge_information import EdgeInformation
-from lidar_slam.geometry import inverse, relative, to_xyz_quat, transform_points
+from lidar_slam.geometry import between_error, inverse, relative, to_xyz_quat, transform_points
 from lidar_slam.loop.scan_context import ScanContextIndex
 from lidar_slam.loop.verify import (
     Side,
@@ -198,8 +198,6 @@ class LoopDetector:
     def _edge_d2(self, kf_id: int) -> float:
         """Squared Mahalanobis distance of kf_id's cloud registered onto kf_id - 1's from the
         odometry's pose (edge_consistent); 0 when either cloud is too thin to say."""
-        from lidar_slam.backend.gtsam_graph import between_error
-
         v = self.cfg.loop.verify
         prev, kf = self.store.get(kf_id - 1), self.store.get(kf_id)
         if min(len(prev.points), len(kf.points)) < MIN_EDGE_POINTS:
@@ -267,8 +265,6 @@ class LoopDetector:
         in the query's frame, under the odometry edges' covariances chained from match to
         query (each moved into the query's frame by its adjoint) plus the loop's own. All edges
         at once: one loop looks back over up to the whole run."""
-        from lidar_slam.backend.gtsam_graph import between_error
-
         C = np.array([self._edge_covariance(k) for k in range(match + 1, query + 1)])
         P = self.store.odom_poses(match, query)
         T_q_k = relative(P[-1], P[1:])  # keyframe k in the query's frame
