@@ -566,6 +566,8 @@ def test_running_rank_equals_scipys_rank_filter(n, cols, half, quantile, seed, t
     want = rank_filter(x, rank, size=footprint, mode="nearest")
     got = imu_gnss.running_rank(x, size, rank)
     assert np.array_equal(got, want)
+    at = np.flatnonzero(rng.random(n) < 0.3)  # some rows only, in order
+    assert np.array_equal(imu_gnss.running_rank(x, size, rank, at=at), want[at])
     old, imu_gnss.RANK_BLOCK = imu_gnss.RANK_BLOCK, 7  # several blocks
     try:
         assert np.array_equal(imu_gnss.running_rank(x, size, rank), want)
