@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_slam.geometry import rotvec_from_matrix
+from lidar_slam.geometry import matrices_from_rotvecs, rotvec_from_matrix
 from lidar_slam.imu import closest_rotation
 from lidar_slam.io.imu_gnss import ImuSamples
 
@@ -374,7 +374,6 @@ def _gyro_motion(gyro: GyroIntegral, R: np.ndarray, offset_s: float, t_ref_s: fl
     with the rotation the gyro read (put in the lidar frame by R, on the scans' clock by
     offset_s) and the translation at constant velocity."""
     from lidar_slam.frontend.deskew import SweepMotion
-    from lidar_slam.geometry import matrices_from_rotvecs
 
     knots = np.linspace(sweep_s[0], sweep_s[1], GYRO_KNOTS) - ref_s
     if not knots[-1] > knots[0]:
