@@ -672,6 +672,7 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
     results: dict[str, dict] = {}
     status: dict[str, str] = {}
     timing: dict[str, float] = {}
+    bytecode = benchmark.compile_ours() if any(s in benchmark.OURS for s in systems) else None
     for spec in BANK:
         if only and spec.name not in only:
             continue
@@ -700,7 +701,8 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
     command = "python tools/bank.py " + shlex.join(argv)
     meta = {"command": command, "date": datetime.datetime.now().isoformat(timespec="seconds"),
             "commit": benchmark.git_commit(), "cpus": os.cpu_count(),
-            "systems": systems, "root": str(root), "seconds_per_sequence": timing}
+            "systems": systems, "root": str(root), "seconds_per_sequence": timing,
+            "bytecode_compiled": bytecode}
     md = [f"# Bank run {meta['date'][:10]}", "", f"`{command}`", "",
           f"commit {meta['commit']}, {meta['cpus']} CPUs, one run per (sequence, system); "
           "ATE: RMSE after rigid alignment; worst frame: the largest aligned error; loop "

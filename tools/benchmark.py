@@ -41,6 +41,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -650,6 +651,27 @@ def run_once(row: Row, seq: Sequence, seq_dir: Path, label: str) -> None:
     row.peak_mb.append(mb)
 
 
+def compile_ours(env: dict[str, str] | None = None) -> str:
+    """Byte-compile the lidar_slam package the timed runs will import (with env, e.g. a
+    PYTHONPATH to another checkout), before anything is timed, as `pip install` does for every
+    installed package; returns the package directory. An editable install writes no bytecode
+    when PYTHONDONTWRITEBYTECODE is set (as on the benchmark VMs), and then every run compiled
+    all ~80 of lidar_slam's modules from source, in its main process and again in its loop
+    worker (~0.3 s of a 4.5 s hand-held walk,
+    docs/benchmarks/2026-12-06j-speed-handheld.md), while the peers' packages ran from pip's
+    bytecode. Python still reads bytecode written here when that variable is set."""
+    code = ("import compileall, pathlib, lidar_slam; "
+            "p = pathlib.Path(lidar_slam.__file__).parent; "
+            "ok = compileall.compile_dir(str(p), quiet=1); print(p); "
+            "raise SystemExit(0 if ok else 1)")
+    # from a neutral directory, as the runs start in their output folders: the same import
+    done = subprocess.run([sys.executable, "-c", code], env=env, text=True, capture_output=True,
+                          cwd=tempfile.gettempdir())
+    if done.returncode:
+        sys.exit(f"benchmark: could not byte-compile lidar_slam: {done.stderr.strip()[-300:]}")
+    return done.stdout.strip()
+
+
 def git_commit() -> str:
     try:
         sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True,
@@ -688,6 +710,7 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         sys.exit(f"--config-for names {missing} match no sequence ({[s.name for s in seqs]})")
 
+    bytecode = compile_ours() if any(s in OURS for s in systems) else None
     rows: list[Row] = []
     for seq in seqs:
         seq_dir = args.out / seq.name
@@ -717,7 +740,8 @@ def main(argv: list[str] | None = None) -> int:
     meta = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
             "cpus": os.cpu_count(), "repeats": args.repeats, "start": args.start,
             "n_scans": args.n_scans, "systems": systems,
-            "configs": {k: str(v) for k, v in configs.items()}, "fps_vs_kiss_icp": ratios}
+            "configs": {k: str(v) for k, v in configs.items()}, "fps_vs_kiss_icp": ratios,
+            "bytecode_compiled": bytecode}
     args.out.mkdir(parents=True, exist_ok=True)
     ours = [r for r in rows if r.system == "lidar-slam"]
     if ours:  # lidar-slam's runs as one batch results table (the last repeat of each)

@@ -19,6 +19,9 @@ shift || true
 case "$cmd" in
   demo)
     "$VENV/bin/python" -m pip install -q -e .
+    # bytecode now, as a non-editable pip install would (an editable one writes none when
+    # PYTHONDONTWRITEBYTECODE is set, and then every run compiles ~80 modules from source)
+    "$VENV/bin/python" -m compileall -q lidar_slam
     "$VENV/bin/lidar-slam" run sample_scans --out runs/sample --overwrite "$@"
     ;;
   test)

@@ -17,6 +17,7 @@ poses_kitti.txt and odometry_kitti.txt are compared with the first run's of the 
 from __future__ import annotations
 
 import argparse
+import compileall
 import filecmp
 import json
 import os
@@ -70,6 +71,8 @@ def main() -> None:
     args = ap.parse_args()
     variants = dict(v.split("=", 1) for v in args.variant)
     args.out.mkdir(parents=True, exist_ok=True)
+    for checkout in variants.values():  # as pip would have: benchmark.compile_ours
+        compileall.compile_dir(str(Path(checkout) / "lidar_slam"), quiet=1)
     for seq in args.sequences:
         config = seq / args.config_name
         config = config if config.is_file() else None
