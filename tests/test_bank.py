@@ -225,3 +225,38 @@ def test_truth_at_carries_a_stamp_one_sweep_onto_the_neighbouring_frames(tmp_pat
         assert np.degrees(np.linalg.norm(rotvec_from_matrix(E[:3, :3]))) < 0.02
         assert np.linalg.norm(E[:3, 3]) < 1e-3
     assert np.array_equal(b.truth_at(path, spec, seq, 5, 0.0), seq.gt[5])
+
+
+def test_speed_reads_every_hand_held_walk_by_round_against_rko_lio(tmp_path, monkeypatch):
+    """bank speed: only the built hand-held walks, both systems each round, the ratio of the
+    medians per walk and the bar; a run's error fails it (run_sequence stubbed: no runs)."""
+    b = bank()
+    walks = [r for r in b.BANK if r.motion == "handheld"][:2]
+    car = next(r for r in b.BANK if r.motion == "car")
+    monkeypatch.setattr(b, "BANK", (*walks, car))
+    for spec in (*walks, car):
+        (tmp_path / spec.name).mkdir()
+        (tmp_path / spec.name / "README.txt").write_text("built")
+        (tmp_path / spec.name / "imu.csv").write_text("")
+    fps = {walks[0].name: iter([(90.0, 80.0), (70.0, 80.0), (95.0, 85.0)]),
+           walks[1].name: iter([(20.0, 30.0), (21.0, 30.0), (22.0, 29.0)])}
+    seen = []
+
+    def fake_run_sequence(spec, seq_path, work, systems, variant=None):
+        seen.append((spec.name, tuple(systems)))
+        ours, peer = next(fps[spec.name])
+        return {"lidar-slam": {"fps": ours, "error": None}, "rko-lio": {"fps": peer, "error": None}}
+
+    monkeypatch.setattr(b, "run_sequence", fake_run_sequence)
+    out = tmp_path / "speed.json"
+    assert b.speed(tmp_path, out, tmp_path / "work", 3, None, ["speed"]) == 0
+    assert car.name not in {name for name, _ in seen} and len(seen) == 6
+    assert all(systems == ("lidar-slam", "rko-lio") for _, systems in seen)
+    data = json.loads(out.read_text())
+    first, second = data["walks"][walks[0].name], data["walks"][walks[1].name]
+    assert first["median"] == [90.0, 80.0] and first["ratio"] == pytest.approx(1.125)
+    assert first["rounds_at_or_above"] == 2 and len(first["round_ratios"]) == 3
+    assert second["ratio"] < 1.0 and data["met"] is False and data["bytecode_compiled"]
+    md = out.with_suffix(".md").read_text()
+    assert f"| {walks[0].name} | 90.0 (90.0, 70.0, 95.0) | 80.0 (80.0, 80.0, 85.0) | **1.12** |" \
+        in md and "Bar met on 1 of 2 walks: **not met**." in md

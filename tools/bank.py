@@ -5,6 +5,8 @@ Usage: python tools/bank.py build --root /work/bank [--only NAME,...]
        python tools/bank.py run --root /work/bank --out docs/benchmarks/DATE-bank.json
               [--only NAME,...] [--systems lidar-slam,lidar-slam-lidar-only,rko-lio]
               [--work DIR] [--config VARIANT.yaml] [--perturb K]
+       python tools/bank.py speed --root /work/bank --out DATE-speed-handheld.json [--rounds 3]
+              [--only NAME,...] [--work DIR]   (issue 29's bar against rko_lio, hand-held)
        python tools/bank.py spec          (the bank as a markdown table)
 
 build simulates each sequence of BANK into ROOT/<name> with `lidar-slam simulate` (a fixed seed
@@ -735,6 +737,74 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
     return 1 if any(r["error"] for b in results.values() for r in b.values()) else 0
 
 
+def speed(root: Path, out: Path, work: Path, rounds: int, only: set[str] | None,
+          argv: list[str]) -> int:
+    """Issue 29's speed bar: frames/s of lidar-slam with the IMU against rko_lio's on every
+    hand-held walk of the bank (whole process), in `rounds` rounds, each round every walk once
+    per system (run_sequence: ours, then rko_lio, back to back). Per walk: both systems' frames/s
+    by round, the ratio of their medians (the bar: >= 1) and by round. Writes out (JSON) and
+    out with .md; returns 1 when a run failed."""
+    walks = [s for s in BANK if s.motion == "handheld" and (not only or s.name in only)
+             and built(root / s.name)]
+    if not walks:
+        sys.exit(f"bank speed: no hand-held walk built under {root}")
+    bytecode = benchmark.compile_ours()
+    systems = ("lidar-slam", "rko-lio")
+    fps: dict[str, dict[str, list]] = {w.name: {s: [] for s in systems} for w in walks}
+    errors: list[str] = []
+    for r in range(rounds):
+        for spec in walks:
+            cells = run_sequence(spec, root / spec.name, work, list(systems))
+            for s in systems:
+                fps[spec.name][s].append(cells[s]["fps"])
+                if cells[s]["error"]:
+                    errors.append(f"{spec.name} / {s}, round {r + 1}: {cells[s]['error']}")
+            print(f"round {r + 1}/{rounds} {spec.name}: "
+                  + ", ".join(f"{s} {_fmt(fps[spec.name][s][-1])} frames/s" for s in systems),
+                  flush=True)
+    table = {}
+    for name, by in fps.items():
+        ours, peer = by["lidar-slam"], by["rko-lio"]
+        pairs = [(a, b) for a, b in zip(ours, peer) if a and b]
+        med = (statistics.median(a for a, _ in pairs), statistics.median(b for _, b in pairs)) \
+            if pairs else (None, None)
+        table[name] = {"lidar-slam": ours, "rko-lio": peer, "median": med,
+                       "ratio": med[0] / med[1] if pairs else None,
+                       "round_ratios": [a / b for a, b in pairs],
+                       "rounds_at_or_above": sum(a >= b for a, b in pairs)}
+    met = all(t["ratio"] is not None and t["ratio"] >= 1.0 for t in table.values())
+    command = "python tools/bank.py " + shlex.join(argv)
+    meta = {"command": command, "date": datetime.datetime.now().isoformat(timespec="seconds"),
+            "commit": benchmark.git_commit(), "cpus": os.cpu_count(), "rounds": rounds,
+            "root": str(root), "bytecode_compiled": bytecode}
+    md = [f"# Hand-held speed {meta['date'][:10]}", "", f"`{command}`", "",
+          f"commit {meta['commit']}, {meta['cpus']} CPUs, {rounds} round(s); frames/s of the "
+          "whole process (lidar-slam with the IMU, rko_lio with its settings for the sensor), "
+          "lidar_slam byte-compiled first (as installed); bar: lidar-slam's median >= rko_lio's "
+          "on every walk.", "",
+          "| walk | lidar-slam frames/s (by round) | rko_lio frames/s (by round) | ratio of the "
+          "medians | by round | rounds >= 1 |", "|---|---|---|---|---|---|"]
+    for name, t in table.items():
+        md.append(f"| {name} | {_fmt(t['median'][0])} ({', '.join(map(_fmt, t['lidar-slam']))}) "
+                  f"| {_fmt(t['median'][1])} ({', '.join(map(_fmt, t['rko-lio']))}) | "
+                  f"**{_fmt(t['ratio'], 2)}** | {', '.join(f'{x:.2f}' for x in t['round_ratios'])}"
+                  f" | {t['rounds_at_or_above']} of {len(t['round_ratios'])} |")
+    n_met = sum(t["ratio"] is not None and t["ratio"] >= 1.0 for t in table.values())
+    md += ["", f"Bar met on {n_met} of {len(table)} walks: **{'met' if met else 'not met'}**."]
+    md += [f"- {e}" for e in errors]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({**meta, "walks": table, "met": met, "errors": errors}, indent=2)
+                   + "\n")
+    out.with_suffix(".md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+    print(f"wrote {out} and {out.with_suffix('.md')}")
+    return 1 if errors else 0
+
+
+def _fmt(x: float | None, digits: int = 1) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -742,7 +812,11 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("build", help="simulate the bank's sequences not yet built")
     r = sub.add_parser("run", help="run every system on every built sequence")
     sub.add_parser("spec", help="print the bank as a markdown table")
-    for p in (b, r):
+    sp = sub.add_parser("speed", help="frames/s against rko_lio's on every hand-held walk")
+    sp.add_argument("--out", type=Path, required=True, help="JSON to write (and .md beside)")
+    sp.add_argument("--rounds", type=int, default=3, help="rounds of every walk (default 3)")
+    sp.add_argument("--work", type=Path, default=None, help="run folders (default ROOT/speed)")
+    for p in (b, r, sp):
         p.add_argument("--root", type=Path, required=True, help="the bank's folder")
         p.add_argument("--only", default="", help="comma-separated sequence names")
     r.add_argument("--out", type=Path, required=True, help="JSON to write (and .md beside)")
@@ -763,6 +837,14 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"--only: no sequence named {unknown} in the bank")
     if args.action == "build":
         return 1 if build(args.root, only) else 0
+    if args.action == "speed":
+        if args.rounds < 1:
+            sys.exit("--rounds: at least 1")
+        for s in ("lidar-slam", "rko-lio"):
+            if not benchmark.available(s):
+                sys.exit(f"bank speed: {s} is not installed here")
+        return speed(args.root, args.out, args.work or args.root / "speed", args.rounds, only,
+                     argv)
     systems = [s.strip() for s in args.systems.split(",") if s.strip()]
     if set(systems) - set(SYSTEMS):
         sys.exit(f"--systems: choose from {SYSTEMS}")
