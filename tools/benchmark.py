@@ -651,9 +651,9 @@ def run_once(row: Row, seq: Sequence, seq_dir: Path, label: str) -> None:
     row.peak_mb.append(mb)
 
 
-def compile_ours(env: dict[str, str] | None = None) -> str:
-    """Byte-compile the lidar_slam package the timed runs will import (with env, e.g. a
-    PYTHONPATH to another checkout), before anything is timed, as `pip install` does for every
+def compile_ours() -> str:
+    """Byte-compile the lidar_slam package the timed runs will import (this environment's,
+    PYTHONPATH included), before anything is timed, as `pip install` does for every
     installed package; returns the package directory. An editable install writes no bytecode
     when PYTHONDONTWRITEBYTECODE is set (as on the benchmark VMs), and then every run compiled
     all ~80 of lidar_slam's modules from source, in its main process and again in its loop
@@ -665,7 +665,7 @@ def compile_ours(env: dict[str, str] | None = None) -> str:
             "ok = compileall.compile_dir(str(p), quiet=1); print(p); "
             "raise SystemExit(0 if ok else 1)")
     # from a neutral directory, as the runs start in their output folders: the same import
-    done = subprocess.run([sys.executable, "-c", code], env=env, text=True, capture_output=True,
+    done = subprocess.run([sys.executable, "-c", code], text=True, capture_output=True,
                           cwd=tempfile.gettempdir())
     if done.returncode:
         sys.exit(f"benchmark: could not byte-compile lidar_slam: {done.stderr.strip()[-300:]}")
