@@ -87,6 +87,16 @@ class OdometryConfig(_Section):
     # the same at 30, every walk, trot and flight the same bytes; docs/bank.md). None: as above.
     imu_max_num_iterations: Count | None = 30
     convergence_criterion: Positive = 1e-4
+    # Without the IMU's prediction, kiss-icp first aligns every coarse_every-th point of its
+    # source from the constant-velocity guess, then its whole source from there: the iterations
+    # a poor guess costs (15-28 a scan on a hand-held walk against 7-10 from the IMU's) are spent
+    # on a quarter of the points. A subsample, not a coarser voxel grid: it keeps the source's
+    # geometry, so both passes seek the same minimum (a 4.5 x voxel grid put a legged trot's
+    # odometry in another, 0.035 -> 0.064 m). Only when the subsample keeps data.min_points
+    # points (ICP on fewer settles anywhere): indoors, where kiss-icp's source is 100-300
+    # points, it never does. Bank, lidar only, three draws (docs/bank.md, "A coarse pass
+    # first"). None: off.
+    coarse_every: Count | None = 4
     # kiss-icp's TBB threads (0: every core). With more than one, its correspondence search and
     # normal-equation sums run in a varying order (poses ~2e-15 apart, which a run's chaos
     # carried to 1.9 cm on a hand-held walk); the odometry rounds kiss-icp's pose to 1e-6

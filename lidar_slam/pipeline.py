@@ -68,6 +68,7 @@ class RunResult:
     # gate, by the held-out points' evidence after the ICP, and before it (see odometry)
     refined_scans: tuple[int, int, int, int] = (0, 0, 0, 0)
     refined_at_speed: int = 0  # of refined_scans[0]: for a lasting speed (lidar only)
+    coarse_scans: int = 0  # registrations that started from a coarse pass (lidar only)
     # odometry failures (lidar_slam.frontend.failure): scan indices of every local-map reset
     # and of the first reset of each episode
     failure_resets: list[int] = field(default_factory=list)
@@ -401,6 +402,7 @@ class Pipeline:
         r.refined_scans = (o.n_refined, o.n_refine_refused, o.n_refine_unproven,
                            o.n_refine_skipped)
         r.refined_at_speed = o.n_refined_at_speed
+        r.coarse_scans = o.n_coarse
         r.failure_resets = list(self.odometry.failures.resets)
         r.failure_episodes = list(self.odometry.failures.episodes)
         if r.failure_resets:

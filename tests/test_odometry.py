@@ -19,7 +19,8 @@ def test_odometry_equals_stock_kiss_icp_on_kitti(kitti16):
     away, as any perturbation of that size can (a run's chaos, not a bias: test below)."""
     src = open_source(kitti16)
     stock = KissICP(kiss_load_config(None))
-    ours = Odometry(load_config(overrides={"odometry": {"pose_quantum_m": 1e-12}}))
+    ours = Odometry(load_config(overrides={"odometry": {"pose_quantum_m": 1e-12,
+                                                        "coarse_every": None}}))
     for scan in src.scans(0, 8):
         stock.register_frame(scan.points, np.array([]))
         T = ours.register(scan.points)
@@ -385,3 +386,39 @@ def test_kiss_icp_iterations_are_capped_only_from_the_imus_prediction(kitti16):
     np.testing.assert_array_equal(second(1, None), second(None, None))
     # a guess that is not the IMU's full prediction (the extrinsic calibration's) is not capped
     np.testing.assert_array_equal(second(1, 0.3, capped=False), converged)
+
+
+def test_coarse_pass_starts_kiss_icp_only_without_the_imu_and_with_enough_points(kitti16):
+    """odometry.coarse_every: from the constant-velocity guess kiss-icp first aligns every 4th
+    point of its source, then all of it from there, to the same minimum on a car (within 1 mm);
+    not from the IMU's prediction, not for the first scan (no map), and not when the subsample
+    keeps fewer than data.min_points points. Counted in summary.json (odometry_coarse_scans)."""
+    scans = [s.points for s in open_source(kitti16).scans(0, 4)]
+
+    def run(guess=None, **odometry_cfg):
+        odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
+                                                           **odometry_cfg}}))
+        poses = [odo.register(p, initial_guess=None if k == 0 else guess)
+                 for k, p in enumerate(scans)]
+        return odo, poses
+
+    coarse, with_coarse = run()
+    off, without = run(coarse_every=None)
+    assert (coarse.n_coarse, off.n_coarse) == (3, 0)
+    for a, b in zip(with_coarse, without):
+        assert np.linalg.norm(a[:3, 3] - b[:3, 3]) < 1e-3
+    assert np.linalg.norm(with_coarse[-1][:3, 3]) > 2.0  # the car moved
+    guess = np.eye(4)
+    guess[0, 3] = 0.8  # an IMU's prediction of the next pose
+    assert run(guess)[0].n_coarse == 0
+    with_imu = Odometry(load_config(), imu=True)  # its constant-velocity scans too
+    for p in scans:
+        with_imu.register(p)
+    assert with_imu.n_coarse == 0
+    crop = coarse._crop._preprocess(kp._Vector3dVector(scans[1]), np.zeros(0), np.eye(4))
+    source = kp._voxel_down_sample(kp._voxel_down_sample(crop, coarse.voxel_size_m * 0.5),
+                                   coarse.voxel_size_m * 1.5)
+    n_coarse = len(np.asarray(source)[::4])
+    few = Odometry(load_config(overrides={"data": {"min_points": n_coarse + 1}}))
+    few.register(scans[0])
+    assert few.register(scans[1]) is not None and few.n_coarse == 0

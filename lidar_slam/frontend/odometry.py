@@ -6,7 +6,10 @@ so kiss-icp's preprocessor runs with its deskew off (range crop only) and deskew
 exactly once;
 and the components are built from our config without kiss-icp's pydantic-settings layer, whose
 import alone costs ~50 ms of every run. tests/test_odometry.py checks the poses equal stock
-KissICP's on real scans (to POSE_QUANTUM).
+KissICP's on real scans (to POSE_QUANTUM). On top of it, each step that kiss-icp does not take
+is its own switch (config.py, OdometryConfig): a coarse pass before kiss-icp's alignment from
+the constant-velocity guess, the slow-scan refinement after it, kiss-icp's iterations capped
+from the IMU's prediction, the failure watch's local-map reset, the pose's rounding.
 """
 
 from __future__ import annotations
@@ -189,9 +192,11 @@ def plane_evidence(target: PlaneTarget, held: np.ndarray, T_kiss: np.ndarray,
 class Odometry:
     """kiss-icp scan-to-map registration; poses are T_world_scan with world = first scan."""
 
-    def __init__(self, cfg: SlamConfig, imu: bool = False):
+    def __init__(self, cfg: SlamConfig, imu: bool = False, coarse: bool | None = None):
         o = cfg.odometry
         self.cfg = cfg
+        # coarse: the coarse pass of lidar-only runs (_coarse; default: without an IMU)
+        self.coarse = not imu if coarse is None else coarse
         # imu: the run's IMU predicts the scans (odometry.refine_evidence "with_imu": the
         # evidence is asked on every scan the IMU predicted, not after the IMU check's "off")
         self.imu = imu
@@ -218,6 +223,7 @@ class Odometry:
         self.last_pose = np.eye(4)
         self.last_delta = np.eye(4)  # T_prev_curr, the constant-velocity prediction
         self.n_registered = 0
+        self.n_coarse = 0  # registrations that started from a coarse pass (_coarse)
         self.last_n_points = 0  # points the last scan had after crop and selection
         self._last_ref_s = 0.0  # reference instant (from the stamp) of the last registered scan
         self._first_ref_s = 0.0
@@ -338,8 +344,11 @@ class Odometry:
         if initial_guess is None:
             initial_guess = self.last_pose @ self.last_delta
         registration = self._from_imu if predicted and capped else self._registration
+        start = None if predicted or not self.coarse else self._coarse(source, initial_guess,
+                                                                         kernel)
         new_pose = registration._align_points_to_map(
-            points=source, voxel_map=self._map, initial_guess=initial_guess,
+            points=source, voxel_map=self._map,
+            initial_guess=initial_guess if start is None else start,
             max_correspondance_distance=3 * kernel, kernel=kernel)
         new_pose = quantised(new_pose, self.cfg.odometry.pose_quantum_m)
         if refine and self._anchors:
@@ -356,6 +365,24 @@ class Odometry:
         self.last_delta = np.linalg.inv(self.last_pose) @ new_pose
         self.last_pose = new_pose
         return new_pose
+
+    def _coarse(self, source, guess: np.ndarray, kernel: float) -> np.ndarray | None:
+        """Lidar only: where kiss-icp starts aligning source from the constant-velocity guess:
+        that guess improved by aligning every odometry.coarse_every-th point of source first
+        (kiss-icp's order is its hash map's, scattered), or None (off, no map yet, or fewer than
+        data.min_points in the subsample). A run with an IMU never takes it (self.coarse), not
+        even on the scans its IMU does not predict, nor does its T_lidar_imu: auto calibration:
+        their poses stay those the bank measured."""
+        every = self.cfg.odometry.coarse_every
+        if every is None or every < 2 or self._map._empty():
+            return None
+        coarse = np.asarray(source)[::every]
+        if len(coarse) < max(1, self.cfg.data.min_points):
+            return None
+        self.n_coarse += 1
+        return self._registration._align_points_to_map(
+            points=_vec(coarse), voxel_map=self._map, initial_guess=guess,
+            max_correspondance_distance=3 * kernel, kernel=kernel)
 
     def step(self, scan: DeskewedScan, initial_guess: np.ndarray | None = None,
              capped: bool = True) -> OdometryResult:
@@ -435,7 +462,7 @@ class Odometry:
                 "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
                                       self.n_refined, self.n_refine_refused,
                                       self.n_refine_unproven, self.n_refine_skipped,
-                                      self._fast_s, self.n_refined_at_speed]),
+                                      self._fast_s, self.n_refined_at_speed, self.n_coarse]),
                 **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
@@ -456,8 +483,9 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        refined = list(refined) + [0] * (6 - len(refined))  # older: fewer
+        refined = list(refined) + [0] * (7 - len(refined))  # older: fewer
         (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
          self.n_refine_skipped) = (int(v) for v in refined[:4])
         self._fast_s, self.n_refined_at_speed = float(refined[4]), int(refined[5])
+        self.n_coarse = int(refined[6])
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)
