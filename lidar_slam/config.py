@@ -96,7 +96,7 @@ class OdometryConfig(_Section):
     # points (ICP on fewer settles anywhere): indoors, where kiss-icp's source is 100-300
     # points, it never does. Bank, lidar only, three draws (docs/bank.md, "A coarse pass
     # first"). None: off.
-    coarse_every: Count | None = 4
+    coarse_every: Annotated[int, Field(ge=2, le=2**31 - 1)] | None = 4
     # kiss-icp's TBB threads (0: every core). With more than one, its correspondence search and
     # normal-equation sums run in a varying order (poses ~2e-15 apart, which a run's chaos
     # carried to 1.9 cm on a hand-held walk); the odometry rounds kiss-icp's pose to 1e-6

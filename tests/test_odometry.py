@@ -182,7 +182,8 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     full = pipeline.Pipeline(cfg, tmp_path / "full")
     for s in scans:
         full.process(s)
-    P_full = full.finish().final_poses()
+    res_full = full.finish()
+    P_full = res_full.final_poses()
     full.close()
 
     run = tmp_path / "cut"
@@ -205,6 +206,8 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     res = resumed.finish()
     resumed.close()
     assert res.refined_scans[0] > 0
+    # the coarse pass's count (odometry_coarse_scans) survives the checkpoint too
+    assert res.coarse_scans == res_full.coarse_scans > 0
     # kiss-icp's map comes back point by point, so its sums may run in another order: the
     # last bits may differ (1e-13 m seen); without the target rebuilt it is centimetres.
     np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
@@ -405,6 +408,31 @@ def test_coarse_pass_starts_kiss_icp_only_without_the_imu_and_with_enough_points
     coarse, with_coarse = run()
     off, without = run(coarse_every=None)
     assert (coarse.n_coarse, off.n_coarse) == (3, 0)
+    # the whole source starts where the pass on every 4th point ended, and kiss-icp's adaptive
+    # threshold still sees the correction of the constant-velocity guess
+    calls = []
+
+    class Spy:
+        def __init__(self, reg):
+            self.reg = reg
+
+        def _align_points_to_map(self, **kw):
+            T = self.reg._align_points_to_map(**kw)
+            calls.append((len(kw["points"]), np.array(kw["initial_guess"]), np.array(T)))
+            return T
+
+    spied = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1}}))
+    spied._registration = Spy(spied._registration)
+    T0 = spied.register(scans[0])
+    cv_guess = spied.last_pose @ spied.last_delta
+    T1 = spied.register(scans[1])
+    assert len(calls) == 3  # scan 0 alone (no map), then two for scan 1
+    (n_sub, guess_sub, T_sub), (n_all, guess_all, _) = calls[1], calls[2]
+    assert n_all > 3 * n_sub
+    np.testing.assert_array_equal(guess_sub, cv_guess)
+    np.testing.assert_array_equal(guess_all, T_sub)
+    np.testing.assert_array_equal(spied._deviations[-1], np.linalg.inv(cv_guess) @ T1)
+    np.testing.assert_array_equal(T0, np.eye(4))
     for a, b in zip(with_coarse, without):
         assert np.linalg.norm(a[:3, 3] - b[:3, 3]) < 1e-3
     assert np.linalg.norm(with_coarse[-1][:3, 3]) > 2.0  # the car moved

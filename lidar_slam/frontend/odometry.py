@@ -374,7 +374,7 @@ class Odometry:
         even on the scans its IMU does not predict, nor does its T_lidar_imu: auto calibration:
         their poses stay those the bank measured."""
         every = self.cfg.odometry.coarse_every
-        if every is None or every < 2 or self._map._empty():
+        if every is None or self._map._empty():
             return None
         coarse = np.asarray(source)[::every]
         if len(coarse) < max(1, self.cfg.data.min_points):

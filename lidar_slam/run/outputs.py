@@ -237,7 +237,7 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     (summary["odometry_refined_scans"], summary["odometry_refine_refused"],
      summary["odometry_refine_unproven"], summary["odometry_refine_skipped"]) = result.refined_scans
     summary["odometry_refined_at_speed"] = result.refined_at_speed
-    # scans kiss-icp registered from a coarse pass's start (odometry.coarse_voxel_factor)
+    # scans kiss-icp registered from a coarse pass's start (odometry.coarse_every)
     summary["odometry_coarse_scans"] = result.coarse_scans
     # episodes of failed odometry (lidar_slam.frontend.failure), the scans they started at, and
     # the scans of every local-map reset
