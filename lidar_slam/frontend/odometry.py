@@ -195,8 +195,9 @@ class Odometry:
     def __init__(self, cfg: SlamConfig, imu: bool = False, coarse: bool | None = None):
         o = cfg.odometry
         self.cfg = cfg
-        # coarse: the coarse pass of lidar-only runs (_coarse; default: without an IMU)
-        self.coarse = not imu if coarse is None else coarse
+        # coarse: the coarse pass of lidar-only runs (_coarse; default: without an IMU), when
+        # odometry.coarse_every is set
+        self.coarse = (not imu if coarse is None else coarse) and o.coarse_every is not None
         # imu: the run's IMU predicts the scans (odometry.refine_evidence "with_imu": the
         # evidence is asked on every scan the IMU predicted, not after the IMU check's "off")
         self.imu = imu
@@ -344,11 +345,9 @@ class Odometry:
         if initial_guess is None:
             initial_guess = self.last_pose @ self.last_delta
         registration = self._from_imu if predicted and capped else self._registration
-        start = None if predicted or not self.coarse else self._coarse(source, initial_guess,
-                                                                         kernel)
+        start = initial_guess if predicted else self._coarse(source, initial_guess, kernel)
         new_pose = registration._align_points_to_map(
-            points=source, voxel_map=self._map,
-            initial_guess=initial_guess if start is None else start,
+            points=source, voxel_map=self._map, initial_guess=start,
             max_correspondance_distance=3 * kernel, kernel=kernel)
         new_pose = quantised(new_pose, self.cfg.odometry.pose_quantum_m)
         if refine and self._anchors:
@@ -366,19 +365,18 @@ class Odometry:
         self.last_pose = new_pose
         return new_pose
 
-    def _coarse(self, source, guess: np.ndarray, kernel: float) -> np.ndarray | None:
+    def _coarse(self, source, guess: np.ndarray, kernel: float) -> np.ndarray:
         """Lidar only: where kiss-icp starts aligning source from the constant-velocity guess:
         that guess improved by aligning every odometry.coarse_every-th point of source first
-        (kiss-icp's order is its hash map's, scattered), or None (off, no map yet, or fewer than
-        data.min_points in the subsample). A run with an IMU never takes it (self.coarse), not
-        even on the scans its IMU does not predict, nor does its T_lidar_imu: auto calibration:
-        their poses stay those the bank measured."""
-        every = self.cfg.odometry.coarse_every
-        if every is None or self._map._empty():
-            return None
-        coarse = np.asarray(source)[::every]
+        (kiss-icp's order is its hash map's, scattered), or the guess itself (off, no map yet,
+        or fewer than data.min_points in the subsample). A run with an IMU never takes it
+        (self.coarse), not even on the scans its IMU does not predict, nor does its
+        T_lidar_imu: auto calibration: their poses stay those the bank measured."""
+        if not self.coarse or self._map._empty():
+            return guess
+        coarse = np.asarray(source)[::self.cfg.odometry.coarse_every]
         if len(coarse) < max(1, self.cfg.data.min_points):
-            return None
+            return guess
         self.n_coarse += 1
         return self._registration._align_points_to_map(
             points=_vec(coarse), voxel_map=self._map, initial_guess=guess,
