@@ -267,6 +267,8 @@ class OdometryInformationConfig(_Section):
     # centroids leave more than this on any real surface.
     min_residual_m: Positive = 0.01
     # Floors: 1-sigmas added to every edge's measured covariance, so no direction is surer.
+    # The rotation floor, swept on the bank lidar only (0.05 / 0.025 deg: NEES in 1..9 on
+    # 10-11 / 9-10 of 16 against 11-12 at 0.1; docs/bank.md, Decisions).
     min_trans_sigma_m: Positive = 0.005
     min_rot_sigma_deg: Positive = 0.1
 
