@@ -116,20 +116,19 @@ class RunResult:
         return out
 
 
-def lost_information(info: np.ndarray | None, sigma_m: float, sigma_rad: float,
-                     cfg: SlamConfig) -> np.ndarray:
+def lost_information(info: np.ndarray | None, sigma_m: float, cfg: SlamConfig) -> np.ndarray:
     """The information of an odometry edge across a failure reset: its own (or the configured
-    sigmas') covariance plus sigma_m in every translation and sigma_rad in every rotation (the
-    odometry's corrections across it: FailureWatch.sigma_between). The registration's Hessian
-    says how well the scan fitted the local map; across a reset the local map itself was
-    wrong."""
+    sigmas') covariance plus kiss-icp's threshold at the reset, sigma_m, in every translation
+    and sigma_m / data.max_range_m (rad: kiss-icp counts a rotation as the arc it makes at the
+    maximum range) in every rotation. The registration's Hessian says how well the scan fitted
+    the local map; across a reset the local map itself was wrong by about that much."""
     from lidar_slam.backend.factors import sigmas_to_information
 
     b = cfg.backend
     if info is None:
         info = sigmas_to_information(b.odom_rot_sigma_deg, b.odom_trans_sigma_m)
     cov = np.linalg.inv(info)
-    cov += np.diag([sigma_rad ** 2] * 3 + [sigma_m ** 2] * 3)
+    cov += np.diag([(sigma_m / cfg.data.max_range_m) ** 2] * 3 + [sigma_m ** 2] * 3)
     out = np.linalg.inv(cov)
     return 0.5 * (out + out.T)
 
@@ -338,14 +337,10 @@ class Pipeline:
         sigmas), widened across an odometry failure, kept in the result."""
         info, store = raw, self.result.store
         if kf_id > 0:
-            a, b = store.frame_index(kf_id - 1), store.frame_index(kf_id)
-            watch = self.odometry.failures
-            sigma_m, sigma_rad = watch.sigma_between(a, b)
-            if sigma_m < 0:  # a checkpoint from before the corrections were kept
-                sigma_m = watch.threshold_between(a, b)
-                sigma_rad = sigma_m / self.cfg.data.max_range_m
-            if sigma_m > 0 or sigma_rad > 0:
-                info = lost_information(info, sigma_m, sigma_rad, self.cfg)
+            sigma = self.odometry.failures.sigma_between(store.frame_index(kf_id - 1),
+                                                         store.frame_index(kf_id))
+            if sigma > 0:
+                info = lost_information(info, sigma, self.cfg)
         if info is not None:
             self.result.odom_information[kf_id] = info
         return info

@@ -54,12 +54,8 @@ class FailureWatch:
     scans: int  # failing scans in a row before a reset
     cloud_voxel_m: float  # voxel of the keyframe clouds' KD-tree
     resets: list[int] = field(default_factory=list)  # scan indices of the resets
-    # kiss-icp's threshold (m) when each reset was decided (the log's figure; the edge across a
-    # reset's covariance only where no corrections were kept: a checkpoint before 2026-12-06)
+    # kiss-icp's threshold (m) when each reset was decided: how far off the odometry could be
     reset_sigmas_m: list[float] = field(default_factory=list)
-    # (scan index, |translation| m, rotation rad) of each registered scan's correction of its
-    # prediction (kiss-icp's model deviation): what sigma_between sums across a reset
-    corrections: list[tuple[int, float, float]] = field(default_factory=list)
     episodes: list[int] = field(default_factory=list)  # scan index each episode started at
     _bad: int = 0
     _n_seen: int = 0
@@ -93,34 +89,10 @@ class FailureWatch:
         self._last_reset = self._n_seen
         return True
 
-    def note(self, scan_index: int, deviation: np.ndarray) -> None:
-        """Keep a registered scan's correction of its prediction (4x4, kiss-icp's model
-        deviation: inv(prediction) @ registered pose) for sigma_between."""
-        cos = np.clip((np.trace(deviation[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-        self.corrections.append((int(scan_index), float(np.linalg.norm(deviation[:3, 3])),
-                                 float(np.arccos(cos))))
-
-    def sigma_between(self, after: int, upto: int) -> tuple[float, float]:
-        """(m, rad): how well the odometry's motion from scan `after` to scan `upto` is known
-        when a reset lies in (after, upto], else (0, 0). Across a reset the local map the scans
-        were registered on was wrong, so each scan's correction of its prediction may be an
-        error of its own size: the root sum of squares of the corrections' translations and
-        rotations over (after, upto]. On the bank's failed walks (45 edges across resets) the
-        true error per axis is 0.57 (translation) and 1.09 (rotation) of it, RMS; kiss-icp's
-        threshold, which it replaces, counts a rotation as its arc at the maximum range and
-        said 9-30 m where the error was 0.05-4.5 m (docs/bank.md). A checkpoint without the
-        corrections (before 2026-12-06) falls back to that threshold: (sigma / max range, sigma)
-        is the caller's."""
-        if not any(after < i <= upto for i in self.resets):
-            return 0.0, 0.0
-        c = [(t, r) for i, t, r in self.corrections if after < i <= upto]
-        if not c:
-            return -1.0, -1.0  # no corrections kept: the caller falls back to the threshold
-        a = np.asarray(c)
-        return float(np.sqrt((a[:, 0] ** 2).sum())), float(np.sqrt((a[:, 1] ** 2).sum()))
-
-    def threshold_between(self, after: int, upto: int) -> float:
-        """The largest kiss-icp threshold (m) at a reset of a scan in (after, upto], else 0."""
+    def sigma_between(self, after: int, upto: int) -> float:
+        """The largest kiss-icp threshold (m) at a reset of a scan in (after, upto], else 0:
+        across a reset the odometry's motion is known no better than that (the threshold is
+        the RMS of its recent corrections)."""
         return max((s for i, s in zip(self.resets, self.reset_sigmas_m) if after < i <= upto),
                    default=0.0)
 
@@ -164,7 +136,6 @@ class FailureWatch:
         return {"failure_resets": np.asarray(self.resets, np.int64),
                 "failure_reset_sigmas": np.asarray(self.reset_sigmas_m, np.float64),
                 "failure_episodes": np.asarray(self.episodes, np.int64),
-                "failure_corrections": np.asarray(self.corrections, np.float64).reshape(-1, 3),
                 "failure_counters": np.array([self._bad, self._n_seen, self._last_reset])}
 
     def restore(self, state: dict[str, np.ndarray]) -> None:
@@ -174,7 +145,5 @@ class FailureWatch:
         self.reset_sigmas_m = [float(v) for v in state.get(  # not in checkpoints before 12-04
             "failure_reset_sigmas", np.zeros(len(self.resets)))]
         self.episodes = [int(i) for i in state["failure_episodes"]]
-        self.corrections = [(int(i), float(t), float(r)) for i, t, r in state.get(
-            "failure_corrections", np.zeros((0, 3)))]  # not in checkpoints before 12-06
         self._bad, self._n_seen, self._last_reset = (int(v) for v in state["failure_counters"])
         self._clouds = {}

@@ -357,7 +357,6 @@ class Odometry:
         deviation = np.linalg.inv(initial_guess) @ new_pose
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
-        self.failures.note(self._scan_index, deviation)
         if self.failures.failed(self._scan_index, sigma, np.asarray(frame_down), new_pose,
                                 self._anchors):
             self._reset_local_map()
