@@ -163,6 +163,13 @@ class OdometryConfig(_Section):
     # hand-held flick kiss-icp read as a jump (refining those lost plaza-handheld-os0 0.21 ->
     # 0.94 m). None: off. Decided on the bank (docs/bank.md, Decisions, 2026-12-05).
     refine_fast_after_s: NonNegative | None = 1.0
+    # The keyframes a scan refined at speed is matched against (None: refine_keyframes). A car
+    # leaves 4 keyframes' clouds behind within metres, and their planes pin its pitch no better
+    # than the scan's own; 12 reach further back along the road (bank, lidar only, three draws:
+    # car05-vlp16 0.85-0.93 -> 0.31-0.32 m, car08-xt32 0.14-0.15 -> 0.055-0.062 m, car07-os0
+    # 0.024-0.032 -> 0.017-0.020 m, car00-hdl64 0.12-0.15 -> 0.16-0.18 m; docs/bank.md,
+    # Decisions). Slow scans, the failure watch and a reset's map keep refine_keyframes.
+    refine_keyframes_at_speed: Count | None = 12
     # Failure (lidar_slam.frontend.failure): failure_scans registered scans in a row with under
     # failure_min_fitness of their points within failure_inlier_m of the last keyframes' clouds
     # (failure_wide_min_fitness while kiss-icp's adaptive threshold is above failure_sigma_m)

@@ -393,7 +393,7 @@ def _window_pass(source, cfg, start: int, count: int, window_s: float, on_interv
     from lidar_slam.frontend.deskew import Deskewer
     from lidar_slam.frontend.odometry import Odometry, VoxelSelector
 
-    odo = Odometry(cfg, coarse=False)  # an IMU run's: no lidar-only coarse pass
+    odo = Odometry(cfg, lidar_only=False)  # an IMU run's: no lidar-only coarse pass or target
     deskew = Deskewer(cfg.data, 0.5 * cfg.voxel_size_m(), VoxelSelector())
     win = Window()
     for scan in source.scans(start, count):

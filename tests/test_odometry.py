@@ -213,6 +213,89 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
 
 
+def test_a_scan_refined_at_speed_matches_more_keyframes_than_a_slow_one(monkeypatch):
+    """odometry.refine_keyframes_at_speed (12): lidar only, a scan refined for its lasting
+    speed is matched against the last 12 keyframes' clouds; a slow scan, the failure watch and
+    a reset's map keep the last refine_keyframes (4). With an IMU, and in an IMU run's
+    calibration pass, every target stays 4 keyframes."""
+    from lidar_slam.frontend import odometry as odometry_module
+
+    built = []
+
+    class Target:  # records which clouds each target is made of, then refines nothing
+        def __init__(self, points, *args):
+            built.append(len(points))
+
+        def __len__(self):
+            return 0
+
+    monkeypatch.setattr(odometry_module, "PlaneTarget", Target)
+    cfg = load_config(overrides={"odometry": {"max_num_threads": 1}})
+    odo = Odometry(cfg)
+    assert odo.n_anchors == 12
+    for k in range(14):  # keyframe k's cloud has k + 1 points
+        T = np.eye(4)
+        T[0, 3] = k
+        odo.add_anchor(T, np.zeros((k + 1, 3)))
+    pose = np.eye(4)
+    odo._refine(np.zeros((50, 3)), pose, evidence=False, predicted=False, at_speed=True)
+    odo._refine(np.zeros((50, 3)), pose, evidence=False, predicted=False, at_speed=False)
+    assert built == [sum(range(3, 15)), sum(range(11, 15))]  # the last 12, the last 4
+    assert [len(p) for _, p in odo._recent()] == [11, 12, 13, 14]
+    assert Odometry(cfg, imu=True).n_anchors == 4
+    assert Odometry(cfg, lidar_only=False).n_anchors == 4
+    off = load_config(overrides={"odometry": {"refine_keyframes_at_speed": None}})
+    assert Odometry(off).n_anchors == 4
+
+
+@pytest.mark.shared_data
+def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
+    """A checkpoint taken at a keyframe while a car is refined at speed, against more keyframes
+    than a slow scan would be (refine_keyframes_at_speed): the resumed run gets the same
+    anchors back and every later pose within 1e-9."""
+    from lidar_slam import pipeline
+    from lidar_slam.run import checkpoint
+    from lidar_slam.sim import load_kitti_truth, simulate_sequence
+
+    kt = load_kitti_truth(kitti_gt, 7)
+    simulate_sequence(kt.poses_world_lidar, kt.stamps_s, tmp_path / "seq", start=400,
+                      n_scans=40, Tr_cam_lidar=kt.Tr_cam_lidar)
+    cfg = load_config(overrides={"loop": {"enabled": False},
+                                 "odometry": {"max_num_threads": 1, "refine_keyframes": 2,
+                                              "refine_keyframes_at_speed": 5}})
+    scans = list(open_source(tmp_path / "seq").scans())
+    full = pipeline.Pipeline(cfg, tmp_path / "full")
+    for s in scans:
+        full.process(s)
+    P_full = full.finish().final_poses()
+    full.close()
+
+    run = tmp_path / "cut"
+    first = pipeline.Pipeline(cfg, run)
+    checkpoint.start_run(run, {"test": 1})
+    k = None
+    for i, s in enumerate(scans):
+        n_kf = len(first.result.store)
+        first.process(s)
+        if (i >= 20 and len(first.result.store) != n_kf
+                and len(first.odometry._anchors) > 2):  # a keyframe, as the CLI checkpoints
+            checkpoint.save(run, first, first.loops_applied_upto)
+            k = i + 1
+            break
+    assert k is not None and first.odometry.n_refined_at_speed > 0
+    n_anchors = len(first.odometry._anchors)
+    first.close()
+    resumed = pipeline.Pipeline(cfg, run, resume=True)
+    assert checkpoint.restore(run, resumed) == k
+    assert len(resumed.odometry._anchors) == n_anchors
+    for s in scans[k:]:
+        resumed.process(s)
+    res = resumed.finish()
+    resumed.close()
+    assert res.refined_at_speed > 0
+    np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
+
+
 def _similarity_scale(est: np.ndarray, truth: np.ndarray) -> float:
     """The scale s that best maps truth positions onto est's (Umeyama with scale)."""
     a, b = truth - truth.mean(0), est - est.mean(0)

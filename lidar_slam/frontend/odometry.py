@@ -192,12 +192,14 @@ def plane_evidence(target: PlaneTarget, held: np.ndarray, T_kiss: np.ndarray,
 class Odometry:
     """kiss-icp scan-to-map registration; poses are T_world_scan with world = first scan."""
 
-    def __init__(self, cfg: SlamConfig, imu: bool = False, coarse: bool | None = None):
+    def __init__(self, cfg: SlamConfig, imu: bool = False, lidar_only: bool | None = None):
         o = cfg.odometry
         self.cfg = cfg
-        # coarse: the coarse pass of lidar-only runs (_coarse; default: without an IMU), when
-        # odometry.coarse_every is set
-        self.coarse = (not imu if coarse is None else coarse) and o.coarse_every is not None
+        # lidar_only (default: without an IMU): the lidar-only coarse pass (_coarse, when
+        # odometry.coarse_every is set) and the wider target of a scan refined at speed
+        # (odometry.refine_keyframes_at_speed); False for an IMU run's calibration pass
+        lidar_only = not imu if lidar_only is None else lidar_only
+        self.coarse = lidar_only and o.coarse_every is not None
         # imu: the run's IMU predicts the scans (odometry.refine_evidence "with_imu": the
         # evidence is asked on every scan the IMU predicted, not after the IMU check's "off")
         self.imu = imu
@@ -234,8 +236,14 @@ class Odometry:
         self._deviations: list[np.ndarray] = []
         # The refinement of slow scans: the last keyframes' clouds (odometry world frame) and
         # the target built from them when a slow scan needs it.
-        self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=o.refine_keyframes)
-        self._target: PlaneTarget | None = None
+        # A scan refined at speed (lidar only) matches the last refine_keyframes_at_speed; slow
+        # scans, the failure watch and a reset's map the last refine_keyframes (_recent).
+        self.n_anchors = o.refine_keyframes
+        if lidar_only and o.refine_fast_after_s is not None and o.refine_keyframes_at_speed:
+            self.n_anchors = max(o.refine_keyframes, o.refine_keyframes_at_speed)
+        self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.n_anchors)
+        self._target: PlaneTarget | None = None  # of _recent()
+        self._target_at_speed: PlaneTarget | None = None  # of the last n_anchors
         self.n_refined = 0
         self._fast_s = 0.0  # registered time at or above refine_below_mps, in a row (s)
         self.n_refined_at_speed = 0  # of n_refined: for their lasting speed
@@ -253,7 +261,12 @@ class Odometry:
         """A new keyframe for the refinement target: its odometry pose and its cloud (N, 3) in
         its own frame; it replaces the oldest (placed only when a slow scan needs them)."""
         self._anchors.append((T_world_kf, points_kf))
-        self._target = None
+        self._target = self._target_at_speed = None
+
+    def _recent(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The last odometry.refine_keyframes anchors (oldest first)."""
+        k = self.cfg.odometry.refine_keyframes
+        return list(self._anchors)[-k:]
 
     def _refine(self, frame_down, T_world_points: np.ndarray, evidence: bool, predicted: bool,
                 at_speed: bool = False) -> np.ndarray:
@@ -265,12 +278,17 @@ class Odometry:
         o = self.cfg.odometry
         corr = (o.refine_imu_correspondence_m if predicted and self.imu
                 else o.refine_max_correspondence_m)
-        if self._target is None:
+        wide = at_speed and self.n_anchors > o.refine_keyframes
+        target = self._target_at_speed if wide else self._target
+        if target is None:
             points = np.concatenate([transform_points(T, np.asarray(p, np.float64))
-                                     for T, p in self._anchors])
-            self._target = PlaneTarget(points,
-                                       self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
-                                       o.refine_max_correspondence_m)
+                                     for T, p in (self._anchors if wide else self._recent())])
+            target = PlaneTarget(points, self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
+                                 o.refine_max_correspondence_m)
+            if wide:
+                self._target_at_speed = target
+            else:
+                self._target = target
         points = np.asarray(frame_down)
         step = max(1, math.ceil(len(points) / o.refine_max_points))
         held = None
@@ -283,26 +301,26 @@ class Odometry:
         if o.refine_voxel_m is not None:
             source = voxel_centroids(source if held is not None else points, o.refine_voxel_m)
         self.last_evidence = None
-        if len(source) < 3 or len(self._target) < 3:
+        if len(source) < 3 or len(target) < 3:
             return T_world_points
         at_kiss = None  # the held-out points' residuals at kiss-icp's pose, for both checks
         if held is not None:
             # Early: if even a Gauss-Newton step fitted on the held-out points themselves does
             # not improve them significantly, a fit on the other points will not: skip the ICP.
-            at_kiss = _plane_residuals(self._target, held, T_world_points, corr)
-            hope = plane_evidence(self._target, held, T_world_points, None, corr, at_kiss)
+            at_kiss = _plane_residuals(target, held, T_world_points, corr)
+            hope = plane_evidence(target, held, T_world_points, None, corr, at_kiss)
             if not hope.proven(o.refine_evidence_z):
                 self.last_evidence = hope
                 self.n_refine_skipped += 1
                 return T_world_points
-        T = self._target.align(source, T_world_points, corr)
+        T = target.align(source, T_world_points, corr)
         correction = np.linalg.inv(T_world_points) @ T
         if (np.linalg.norm(correction[:3, 3]) > o.refine_max_correction_m
                 or rotation_angle_deg(correction) > o.refine_max_correction_deg):
             self.n_refine_refused += 1
             return T_world_points
         if held is not None:
-            self.last_evidence = plane_evidence(self._target, held, T_world_points, T, corr,
+            self.last_evidence = plane_evidence(target, held, T_world_points, T, corr,
                                                 at_kiss)
             if not self.last_evidence.proven(o.refine_evidence_z):
                 self.n_refine_unproven += 1
@@ -358,7 +376,7 @@ class Odometry:
         self._threshold._update_model_deviation(model_deviation=deviation)
         self._deviations.append(deviation)
         if self.failures.failed(self._scan_index, sigma, np.asarray(frame_down), new_pose,
-                                self._anchors):
+                                self._recent()):
             self._reset_local_map()
         self._map._update(frame_down, new_pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ new_pose
@@ -419,7 +437,7 @@ class Odometry:
         is added next) and its threshold from its initial value (a NaN deviation marks the
         restart for a resumed run's replay)."""
         self._map._clear()
-        for T_world_kf, points_kf in self._anchors:
+        for T_world_kf, points_kf in self._recent():
             self._map._update(_vec(np.asarray(points_kf, np.float64)), T_world_kf)
         self._new_threshold()
         self._deviations.append(np.full((4, 4), np.nan))

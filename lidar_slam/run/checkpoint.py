@@ -318,7 +318,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     r.store.truncate(meta["keyframes"])
     anchors = []  # the slow-scan refinement's target, as the run had it: the last non-empty
     for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first
-        if len(anchors) == pipe.cfg.odometry.refine_keyframes:
+        if len(anchors) == pipe.odometry.n_anchors:
             break
         kf = r.store.get(kf_id)
         if len(kf.points):
