@@ -163,7 +163,8 @@ class OdometryConfig(_Section):
     # hand-held flick kiss-icp read as a jump (refining those lost plaza-handheld-os0 0.21 ->
     # 0.94 m). None: off. Decided on the bank (docs/bank.md, Decisions, 2026-12-05).
     refine_fast_after_s: NonNegative | None = 1.0
-    # The keyframes a scan refined at speed is matched against (None: refine_keyframes). A car
+    # The keyframes a scan refined at speed is matched against (None, or fewer than
+    # refine_keyframes: refine_keyframes). A car
     # leaves 4 keyframes' clouds behind within metres, and their planes pin its pitch no better
     # than the scan's own; 12 reach further back along the road (bank, lidar only, three draws:
     # car05-vlp16 0.85-0.93 -> 0.31-0.32 m, car08-xt32 0.14-0.15 -> 0.055-0.062 m, car07-os0

@@ -246,6 +246,8 @@ def test_a_scan_refined_at_speed_matches_more_keyframes_than_a_slow_one(monkeypa
     assert Odometry(cfg, lidar_only=False).n_anchors == 4
     off = load_config(overrides={"odometry": {"refine_keyframes_at_speed": None}})
     assert Odometry(off).n_anchors == 4
+    slow_off = load_config(overrides={"odometry": {"refine_below_mps": 0.0}})
+    assert Odometry(slow_off).n_anchors == 4  # nothing is refined, at speed or not
 
 
 @pytest.mark.shared_data
@@ -283,7 +285,8 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
             k = i + 1
             break
     assert k is not None and first.odometry.n_refined_at_speed > 0
-    n_anchors = len(first.odometry._anchors)
+    assert first.odometry._at_speed()  # cut while the car is refined at speed
+    n_anchors, at_speed_before = len(first.odometry._anchors), first.odometry.n_refined_at_speed
     first.close()
     resumed = pipeline.Pipeline(cfg, run, resume=True)
     assert checkpoint.restore(run, resumed) == k
@@ -292,7 +295,7 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
         resumed.process(s)
     res = resumed.finish()
     resumed.close()
-    assert res.refined_at_speed > 0
+    assert res.refined_at_speed > at_speed_before  # refined at speed after the resume too
     np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
 
 

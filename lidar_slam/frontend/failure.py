@@ -67,7 +67,7 @@ class FailureWatch:
                anchors) -> bool:
         """Whether the scan registered at T_world_points (points (N,3), its frame) means the
         odometry has failed: then the reset is counted and logged (once per episode).
-        anchors: the last keyframes (T_world_kf, points_kf) (Odometry._anchors)."""
+        anchors: the last keyframes (T_world_kf, points_kf) (Odometry._recent())."""
         self._n_seen += 1
         if self.min_fitness <= 0 or not anchors:
             self._bad = 0

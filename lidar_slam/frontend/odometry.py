@@ -234,12 +234,13 @@ class Odometry:
         # state is not exposed by kiss-icp, so a checkpoint appends them to a file and a resumed
         # run replays them all to rebuild it exactly.
         self._deviations: list[np.ndarray] = []
-        # The refinement of slow scans: the last keyframes' clouds (odometry world frame) and
-        # the target built from them when a slow scan needs it.
-        # A scan refined at speed (lidar only) matches the last refine_keyframes_at_speed; slow
-        # scans, the failure watch and a reset's map the last refine_keyframes (_recent).
+        # The refinement's targets: the last keyframes' clouds (odometry world frame), made into
+        # a target when a scan to refine needs it. A scan refined at speed (lidar only) matches
+        # the last refine_keyframes_at_speed (at least refine_keyframes); slow scans, the
+        # failure watch and a reset's map the last refine_keyframes (_recent).
         self.n_anchors = o.refine_keyframes
-        if lidar_only and o.refine_fast_after_s is not None and o.refine_keyframes_at_speed:
+        if (lidar_only and o.refine_below_mps > 0 and o.refine_fast_after_s is not None
+                and o.refine_keyframes_at_speed):
             self.n_anchors = max(o.refine_keyframes, o.refine_keyframes_at_speed)
         self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.n_anchors)
         self._target: PlaneTarget | None = None  # of _recent()
@@ -259,7 +260,7 @@ class Odometry:
 
     def add_anchor(self, T_world_kf: np.ndarray, points_kf: np.ndarray) -> None:
         """A new keyframe for the refinement target: its odometry pose and its cloud (N, 3) in
-        its own frame; it replaces the oldest (placed only when a slow scan needs them)."""
+        its own frame; it replaces the oldest (placed only when a scan to refine needs them)."""
         self._anchors.append((T_world_kf, points_kf))
         self._target = self._target_at_speed = None
 
@@ -274,7 +275,9 @@ class Odometry:
         or (odometry.refine_evidence) when the scan's held-out points do not prove it better.
         predicted: kiss-icp started from the IMU's prediction (then the matches reach
         odometry.refine_imu_correspondence_m, not refine_max_correspondence_m). at_speed: a
-        scan refined for its lasting speed (odometry.refine_fast_after_s), counted apart too."""
+        scan refined for its lasting speed (odometry.refine_fast_after_s), counted apart too,
+        against the last n_anchors keyframes (odometry.refine_keyframes_at_speed) where a slow
+        scan's target is the last refine_keyframes."""
         o = self.cfg.odometry
         corr = (o.refine_imu_correspondence_m if predicted and self.imu
                 else o.refine_max_correspondence_m)

@@ -316,7 +316,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     if imu:
         pipe.inertial.restore(imu)
     r.store.truncate(meta["keyframes"])
-    anchors = []  # the slow-scan refinement's target, as the run had it: the last non-empty
+    anchors = []  # the refinement's targets, as the run had them: the last n_anchors non-empty
     for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first
         if len(anchors) == pipe.odometry.n_anchors:
             break
