@@ -164,6 +164,37 @@ def test_a_car_at_speed_is_refined_lidar_only_once_the_speed_has_lasted(kitti_gt
     assert at_speed[0] == at_speed[2] == 0 and at_speed[1] >= 1  # summary.json counts them
 
 
+def _run_whole(cfg, scans, out):
+    """One uninterrupted run of scans (the reference a resumed run must reproduce)."""
+    from lidar_slam import pipeline
+
+    full = pipeline.Pipeline(cfg, out)
+    try:
+        for s in scans:
+            full.process(s)
+        return full.finish()
+    finally:
+        full.close()
+
+
+def _cut_at_a_keyframe(cfg, scans, run, ready):
+    """Process scans until a keyframe is made with ready(i, pipe) true, checkpoint there as the
+    CLI does, and return (the pipeline, still open, the number of scans processed)."""
+    from lidar_slam import pipeline
+    from lidar_slam.run import checkpoint
+
+    first = pipeline.Pipeline(cfg, run)
+    checkpoint.start_run(run, {"test": 1})
+    for i, s in enumerate(scans):
+        n_kf = len(first.result.store)
+        first.process(s)
+        if len(first.result.store) != n_kf and ready(i, first):
+            checkpoint.save(run, first, first.loops_applied_upto)
+            return first, i + 1
+    first.close()
+    raise AssertionError("no keyframe where the cut was wanted")
+
+
 @pytest.mark.shared_data
 def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe in the middle of a slow stretch, restored into a fresh
@@ -178,26 +209,12 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     cfg = load_config(overrides={"loop": {"enabled": False},
                                  "odometry": {"max_num_threads": 1}})
     scans = list(open_source(tmp_path / "seq").scans())
-
-    full = pipeline.Pipeline(cfg, tmp_path / "full")
-    for s in scans:
-        full.process(s)
-    res_full = full.finish()
+    res_full = _run_whole(cfg, scans, tmp_path / "full")
     P_full = res_full.final_poses()
-    full.close()
 
     run = tmp_path / "cut"
-    first = pipeline.Pipeline(cfg, run)
-    checkpoint.start_run(run, {"test": 1})
-    k = None
-    for i, s in enumerate(scans):
-        n_kf = len(first.result.store)
-        first.process(s)
-        if i >= 10 and len(first.result.store) != n_kf:  # a keyframe, as the CLI checkpoints
-            checkpoint.save(run, first, first.loops_applied_upto)
-            k = i + 1
-            break
-    assert k is not None and first.odometry.n_refined > 0
+    first, k = _cut_at_a_keyframe(cfg, scans, run, lambda i, pipe: i >= 10)
+    assert first.odometry.n_refined > 0
     first.close()
     resumed = pipeline.Pipeline(cfg, run, resume=True)
     assert checkpoint.restore(run, resumed) == k
@@ -266,25 +283,12 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
                                  "odometry": {"max_num_threads": 1, "refine_keyframes": 2,
                                               "refine_keyframes_at_speed": 5}})
     scans = list(open_source(tmp_path / "seq").scans())
-    full = pipeline.Pipeline(cfg, tmp_path / "full")
-    for s in scans:
-        full.process(s)
-    P_full = full.finish().final_poses()
-    full.close()
+    P_full = _run_whole(cfg, scans, tmp_path / "full").final_poses()
 
     run = tmp_path / "cut"
-    first = pipeline.Pipeline(cfg, run)
-    checkpoint.start_run(run, {"test": 1})
-    k = None
-    for i, s in enumerate(scans):
-        n_kf = len(first.result.store)
-        first.process(s)
-        if (i >= 20 and len(first.result.store) != n_kf
-                and len(first.odometry._anchors) > 2):  # a keyframe, as the CLI checkpoints
-            checkpoint.save(run, first, first.loops_applied_upto)
-            k = i + 1
-            break
-    assert k is not None and first.odometry.n_refined_at_speed > 0
+    first, k = _cut_at_a_keyframe(cfg, scans, run,
+                                  lambda i, pipe: i >= 20 and len(pipe.odometry._anchors) > 2)
+    assert first.odometry.n_refined_at_speed > 0
     assert first.odometry._at_speed()  # cut while the car is refined at speed
     n_anchors, at_speed_before = len(first.odometry._anchors), first.odometry.n_refined_at_speed
     first.close()

@@ -243,8 +243,8 @@ class Odometry:
                 and o.refine_keyframes_at_speed):
             self.n_anchors = max(o.refine_keyframes, o.refine_keyframes_at_speed)
         self._anchors: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.n_anchors)
-        self._target: PlaneTarget | None = None  # of _recent()
-        self._target_at_speed: PlaneTarget | None = None  # of the last n_anchors
+        # the targets made so far from the anchors: {False: of _recent(), True: of all of them}
+        self._targets: dict[bool, PlaneTarget] = {}
         self.n_refined = 0
         self._fast_s = 0.0  # registered time at or above refine_below_mps, in a row (s)
         self.n_refined_at_speed = 0  # of n_refined: for their lasting speed
@@ -262,7 +262,7 @@ class Odometry:
         """A new keyframe for the refinement target: its odometry pose and its cloud (N, 3) in
         its own frame; it replaces the oldest (placed only when a scan to refine needs them)."""
         self._anchors.append((T_world_kf, points_kf))
-        self._target = self._target_at_speed = None
+        self._targets = {}
 
     def _recent(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The last odometry.refine_keyframes anchors (oldest first)."""
@@ -282,16 +282,13 @@ class Odometry:
         corr = (o.refine_imu_correspondence_m if predicted and self.imu
                 else o.refine_max_correspondence_m)
         wide = at_speed and self.n_anchors > o.refine_keyframes
-        target = self._target_at_speed if wide else self._target
+        target = self._targets.get(wide)
         if target is None:
             points = np.concatenate([transform_points(T, np.asarray(p, np.float64))
                                      for T, p in (self._anchors if wide else self._recent())])
-            target = PlaneTarget(points, self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
-                                 o.refine_max_correspondence_m)
-            if wide:
-                self._target_at_speed = target
-            else:
-                self._target = target
+            target = self._targets[wide] = PlaneTarget(
+                points, self.cfg.keyframes.cloud_voxel_m, REFINE_ITERATIONS,
+                o.refine_max_correspondence_m)
         points = np.asarray(frame_down)
         step = max(1, math.ceil(len(points) / o.refine_max_points))
         held = None

@@ -39,21 +39,22 @@ def main() -> None:
     args = ap.parse_args()
     records: list[dict] = []
 
-    def traced(self, frame_down, T0):
+    def traced(self, frame_down, T0, *_args, **_kwargs):  # _refine's other arguments unused
         o = self.cfg.odometry
-        if self._target is None:
-            self._target = odometry.PlaneTarget(
-                np.concatenate([odometry.transform_points(T, p) for T, p in self._anchors]),
+        target = self._targets.get(False)  # the slow scans' target (Odometry._refine)
+        if target is None:
+            target = self._targets[False] = odometry.PlaneTarget(
+                np.concatenate([odometry.transform_points(T, p) for T, p in self._recent()]),
                 self.cfg.keyframes.cloud_voxel_m, odometry.REFINE_ITERATIONS,
                 o.refine_max_correspondence_m)
         pts = np.asarray(frame_down)
         step = max(2, math.ceil(len(pts) / o.refine_max_points))
         source, held = pts[::step], pts[step // 2::step]
-        T1 = self._target.align(source, T0, o.refine_max_correspondence_m)
+        T1 = target.align(source, T0, o.refine_max_correspondence_m)
         c = o.refine_max_correspondence_m
         records.append({"T0": T0, "T1": T1,
-                        "early": odometry.plane_evidence(self._target, held, T0, None, c),
-                        "post": odometry.plane_evidence(self._target, held, T0, T1, c)})
+                        "early": odometry.plane_evidence(target, held, T0, None, c),
+                        "post": odometry.plane_evidence(target, held, T0, T1, c)})
         return T1 if args.keep == "refined" else T0
 
     odometry.Odometry._refine = traced
