@@ -126,7 +126,11 @@ def kill_pool(pool: ProcessPoolExecutor) -> None:
     wanted: a graceful exit would only tear down its imports."""
     for proc in list(pool._processes.values()):
         proc.kill()
-    pool.shutdown(wait=True, cancel_futures=True)
+    # Called from the pool's own manager thread (a garbage collection there that finalizes the
+    # helper's owner), waiting would join that thread from itself (RuntimeError "cannot join
+    # current thread", seen once in CI): its process is killed, the thread ends by itself.
+    own = getattr(pool, "_executor_manager_thread", None) is threading.current_thread()
+    pool.shutdown(wait=not own, cancel_futures=True)
 
 
 def is_urgent(backlog: int, lag: int, frames_left: int | None) -> bool:

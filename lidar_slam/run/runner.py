@@ -298,54 +298,57 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                     "input); nothing to do (--overwrite runs it again)", out)
         return RunOutcome(summary, source.ground_truth, finished_before=True)
     painter = TopViewPainter.start()  # imports matplotlib beside the run, draws at its end
-    resuming = _resuming(out, identity, overwrite, resume)
-    if not resuming:
-        # What the run is, before any other file of it: a run stopped at any instant after
-        # this (a batch's worker killed while its pipeline starts) is one --resume knows.
-        checkpoint.start_run(out, identity)
-    visualizer = open_viewer(viz, rrd)
-    t0 = time.perf_counter()
-    stop = StopSignals()
-    with stop:  # from here on, a signal stops the run after the scan in hand
-        pipe = Pipeline(cfg, out, visualizer, resume=resuming, inertial=inertial)
-        pipe.frames_total = total
-        done = 0
-        if resuming:
-            done = checkpoint.restore(out, pipe)
-            log.warning("resuming %s at frame %d of %d", out, done, total)
-        label = f"{source.name}:{source.topic}" if source.topic else source.name
-        end = _process_scans(pipe, read_ahead(source.scans(start + done, total - done)), out,
-                             stop, make_progress(label, total, done, shown=progress))
-        with stop.deferred():  # a signal now waits until the outputs are written
-            frames = len(pipe.result.indices)
-            skipped = pipe.result.skipped_empty + pipe.result.skipped_small
-            if frames == skipped:  # no frame, or no scan with enough valid points
+    try:
+        resuming = _resuming(out, identity, overwrite, resume)
+        if not resuming:
+            # What the run is, before any other file of it: a run stopped at any instant after
+            # this (a batch's worker killed while its pipeline starts) is one --resume knows.
+            checkpoint.start_run(out, identity)
+        visualizer = open_viewer(viz, rrd)
+        t0 = time.perf_counter()
+        stop = StopSignals()
+        with stop:  # from here on, a signal stops the run after the scan in hand
+            pipe = Pipeline(cfg, out, visualizer, resume=resuming, inertial=inertial)
+            pipe.frames_total = total
+            done = 0
+            if resuming:
+                done = checkpoint.restore(out, pipe)
+                log.warning("resuming %s at frame %d of %d", out, done, total)
+            label = f"{source.name}:{source.topic}" if source.topic else source.name
+            end = _process_scans(pipe, read_ahead(source.scans(start + done, total - done)), out,
+                                 stop, make_progress(label, total, done, shown=progress))
+            with stop.deferred():  # a signal now waits until the outputs are written
+                frames = len(pipe.result.indices)
+                skipped = pipe.result.skipped_empty + pipe.result.skipped_small
+                if frames == skipped:  # no frame, or no scan with enough valid points
+                    pipe.close()
+                    discard_run(out, created)
+                    raise _nothing_written(end, stop.received, out, data, frames, cfg)
+                result = pipe.finish()
+                inertial = pipe.input  # as the IMU check left it
+                status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
+                          "frames_requested": total}
+                if end.error:
+                    status["stopped_by_error"] = end.error
+                run_info = {"input": str(data), "input_kind": source.kind, "topic": source.topic,
+                            "config_overlay": str(config) if config is not None else None,
+                            "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
+                            "input_notes": source.input_notes, **inertial.summary,
+                            **({} if pipe.inertial is None
+                               else {"imu_frontend": pipe.inertial.summary(),
+                                     "imu_check": pipe.inertial.check.summary()}),
+                            "start": start,
+                            "resumed_at_frame": done, "version": __version__,
+                            "git_commit": git_commit()}
+                summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
+                                    extra={**status, **run_info}, painter=painter)
+                painter.close()
                 pipe.close()
-                discard_run(out, created)
-                raise _nothing_written(end, stop.received, out, data, frames, cfg)
-            result = pipe.finish()
-            inertial = pipe.input  # as the IMU check left it
-            status = {"interrupted": stop.received, "stopped": _stop_reason(end, stop),
-                      "frames_requested": total}
-            if end.error:
-                status["stopped_by_error"] = end.error
-            run_info = {"input": str(data), "input_kind": source.kind, "topic": source.topic,
-                        "config_overlay": str(config) if config is not None else None,
-                        "deskew": _deskew_state(cfg, end.n_timed, end.n_read),
-                        "input_notes": source.input_notes, **inertial.summary,
-                        **({} if pipe.inertial is None
-                           else {"imu_frontend": pipe.inertial.summary(),
-                                 "imu_check": pipe.inertial.check.summary()}),
-                        "start": start,
-                        "resumed_at_frame": done, "version": __version__,
-                        "git_commit": git_commit()}
-            summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
-                                extra={**status, **run_info}, painter=painter)
-            painter.close()
-            pipe.close()
-            if end.internal_error:
-                write_text_atomic(out / "error_traceback.txt", end.internal_error)
-    if visualizer is not None:
-        visualizer.finish(result, out / "map.ply")
-    return RunOutcome(summary, source.ground_truth,
-                      _failure(end, stop, out, summary["frames"]))
+                if end.internal_error:
+                    write_text_atomic(out / "error_traceback.txt", end.internal_error)
+        if visualizer is not None:
+            visualizer.finish(result, out / "map.ply")
+        return RunOutcome(summary, source.ground_truth,
+                          _failure(end, stop, out, summary["frames"]))
+    finally:  # a run that stops by an exception ends its helper here, not in a finalizer
+        painter.close()
