@@ -97,6 +97,14 @@ class OdometryConfig(_Section):
     # points, it never does. Bank, lidar only, three draws (docs/bank.md, "A coarse pass
     # first"). None: off.
     coarse_every: Annotated[int, Field(ge=2, le=2**31 - 1)] | None = 4
+    # Without the IMU, when the last motion turned more than this (deg a scan: a hand-held
+    # flick, a drone's yaw, a trot; a car's turn stays under it), kiss-icp also starts from the
+    # last pose (no motion), and the pose whose points fit the last keyframes' clouds better
+    # (the failure watch's fitness) is kept: a flick that stops leaves the constant-velocity
+    # guess several degrees past the scan, where ICP settles in another minimum. Bank, lidar only,
+    # three draws (docs/bank.md, "A second start"): the failed walks 0.34-0.72 / 0.12-2.07 m
+    # -> 0.17-0.20 / 0.10-0.11 m. None: off.
+    second_start_deg: Annotated[float, Field(gt=0)] | None = 4.0
     # kiss-icp's TBB threads (0: every core). With more than one, its correspondence search and
     # normal-equation sums run in a varying order (poses ~2e-15 apart, which a run's chaos
     # carried to 1.9 cm on a hand-held walk); the odometry rounds kiss-icp's pose to 1e-6

@@ -69,6 +69,8 @@ class RunResult:
     refined_scans: tuple[int, int, int, int] = (0, 0, 0, 0)
     refined_at_speed: int = 0  # of refined_scans[0]: for a lasting speed (lidar only)
     coarse_scans: int = 0  # registrations that started from a coarse pass (lidar only)
+    # lidar only: scans that also started from the last pose, and of them those it kept
+    second_start: tuple[int, int] = (0, 0)
     # odometry failures (lidar_slam.frontend.failure): scan indices of every local-map reset
     # and of the first reset of each episode
     failure_resets: list[int] = field(default_factory=list)
@@ -403,6 +405,7 @@ class Pipeline:
                            o.n_refine_skipped)
         r.refined_at_speed = o.n_refined_at_speed
         r.coarse_scans = o.n_coarse
+        r.second_start = (o.n_second_tried, o.n_second_taken)
         r.failure_resets = list(self.odometry.failures.resets)
         r.failure_episodes = list(self.odometry.failures.episodes)
         if r.failure_resets:

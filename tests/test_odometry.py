@@ -225,6 +225,7 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     assert res.refined_scans[0] > 0
     # the coarse pass's count (odometry_coarse_scans) survives the checkpoint too
     assert res.coarse_scans == res_full.coarse_scans > 0
+    assert res.second_start == res_full.second_start  # (odometry_second_start) likewise
     # kiss-icp's map comes back point by point, so its sums may run in another order: the
     # last bits may differ (1e-13 m seen); without the target rebuilt it is centimetres.
     np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
@@ -540,3 +541,51 @@ def test_coarse_pass_starts_kiss_icp_only_without_the_imu_and_with_enough_points
     few = Odometry(load_config(overrides={"data": {"min_points": n_coarse + 1}}))
     few.register(scans[0])
     assert few.register(scans[1]) is not None and few.n_coarse == 0
+
+
+def _seen_from(points: np.ndarray, T_world_sensor: np.ndarray) -> np.ndarray:
+    """points (N, 3) of the world as a sensor at T_world_sensor sees them (no motion in the
+    sweep)."""
+    return (points - T_world_sensor[:3, 3]) @ T_world_sensor[:3, :3]
+
+
+def test_a_flick_that_stops_is_registered_from_the_last_pose_too(kitti16):
+    """odometry.second_start_deg: a 20 deg turn in one scan, then none. From the constant-velocity
+    guess (40 deg) kiss-icp settles 17 deg off the scan's pose; started from the last pose as
+    well, the better-fitting pose (against the last keyframe's cloud) is the scan's own.
+    Counted in summary.json (odometry_second_start); never with the IMU's prediction, and not
+    after a turn under the limit."""
+    from scipy.spatial.transform import Rotation
+
+    from lidar_slam.geometry import make_pose, rotation_angle_deg
+
+    world = next(iter(open_source(kitti16).scans(0, 1))).points[:, :3].astype(np.float64)
+    turned = make_pose(Rotation.from_euler("z", 20, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
+
+    def run(poses, guesses=None, **odometry_cfg):
+        odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
+                                                           **odometry_cfg}}), lidar_only=True)
+        out = []
+        for k, T in enumerate(poses):
+            out.append(odo.register(_seen_from(world, T),
+                                    initial_guess=None if guesses is None else guesses[k]))
+            if k == 0:
+                odo.add_anchor(np.eye(4), world)  # the first scan is a keyframe
+        return odo, [rotation_angle_deg(np.linalg.inv(T) @ P) for T, P in zip(poses, out)]
+
+    odo, off_deg = run([np.eye(4), turned, turned])
+    assert max(off_deg) < 0.1
+    assert (odo.n_second_tried, odo.n_second_taken) == (1, 1)
+    again = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1}}),
+                     lidar_only=True)
+    again.restore(odo.state(), odo.take_deviations())  # a checkpoint keeps the counts
+    assert (again.n_second_tried, again.n_second_taken) == (1, 1)
+    single, off_deg = run([np.eye(4), turned, turned], second_start_deg=None)
+    assert off_deg[2] > 10.0 and single.n_second_tried == 0  # what it mends
+    # the IMU's prediction: one start, its own
+    imu, _ = run([np.eye(4), turned, turned], guesses=[None, turned, turned])
+    assert imu.n_second_tried == 0
+    # a turn under the limit (3 deg a scan): one start
+    slow = make_pose(Rotation.from_euler("z", 3, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
+    calm, _ = run([np.eye(4), slow, slow @ slow])
+    assert calm.n_second_tried == 0

@@ -73,7 +73,7 @@ class FailureWatch:
             self._bad = 0
             return False
         bar = self.wide_min_fitness if 0 < self.sigma_m < sigma else self.min_fitness
-        fitness = self._fitness(points, T_world_points, anchors, bar)
+        fitness = self.fitness(points, T_world_points, anchors, bar)
         self._bad = self._bad + 1 if fitness < bar else 0
         if self._bad < self.scans:
             return False
@@ -103,7 +103,7 @@ class FailureWatch:
         of a reset (the walk's flicks), and a wide kernel is what made it crawl."""
         return min(sigma, initial_m) if self.resets else sigma
 
-    def _fitness(self, points: np.ndarray, T_world_points: np.ndarray, anchors,
+    def fitness(self, points: np.ndarray, T_world_points: np.ndarray, anchors,
                  enough: float = 1.0) -> float:
         """Share of points (thinned) within inlier_m of the anchors' clouds once placed. The
         newest keyframe first, and each older one only for the points not yet near (the share

@@ -200,6 +200,8 @@ class Odometry:
         # (odometry.refine_keyframes_at_speed); False for an IMU run's calibration pass
         lidar_only = not imu if lidar_only is None else lidar_only
         self.coarse = lidar_only and o.coarse_every is not None
+        # scans that also started from the last pose (_second_start), and of them those kept
+        self.n_second_tried = self.n_second_taken = 0
         # imu: the run's IMU predicts the scans (odometry.refine_evidence "with_imu": the
         # evidence is asked on every scan the IMU predicted, not after the IMU check's "off")
         self.imu = imu
@@ -364,9 +366,17 @@ class Odometry:
             initial_guess = self.last_pose @ self.last_delta
         registration = self._from_imu if predicted and capped else self._registration
         start = initial_guess if predicted else self._coarse(source, initial_guess, kernel)
+        second = not predicted and self._second_start()
+        if second and start is not initial_guess:  # both starts through the coarse pass
+            start = self._fitter(frame_down, start,
+                                 self._coarse(source, self.last_pose, kernel, count=False))
         new_pose = registration._align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=start,
             max_correspondance_distance=3 * kernel, kernel=kernel)
+        if second and start is initial_guess:  # no coarse pass (a small source): both in full
+            new_pose = self._fitter(frame_down, new_pose, registration._align_points_to_map(
+                points=source, voxel_map=self._map, initial_guess=self.last_pose,
+                max_correspondance_distance=3 * kernel, kernel=kernel))
         new_pose = quantised(new_pose, self.cfg.odometry.pose_quantum_m)
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
@@ -383,7 +393,28 @@ class Odometry:
         self.last_pose = new_pose
         return new_pose
 
-    def _coarse(self, source, guess: np.ndarray, kernel: float) -> np.ndarray:
+    def _second_start(self) -> bool:
+        """Lidar only: whether kiss-icp also starts from the last pose (no motion) besides the
+        constant-velocity guess: the last motion turned more than odometry.second_start_deg
+        and there are keyframes to judge the two by."""
+        limit = self.cfg.odometry.second_start_deg
+        return (self.coarse and limit is not None and bool(self._anchors)
+                and rotation_angle_deg(self.last_delta) > limit)
+
+    def _fitter(self, frame_down, T_cv: np.ndarray, T_still: np.ndarray) -> np.ndarray:
+        """Of two poses of the scan, from the constant-velocity start and from the last pose,
+        the one whose points lie more often within odometry.failure_inlier_m of the last
+        keyframes' clouds (the failure watch's fitness); the constant-velocity one on a tie."""
+        self.n_second_tried += 1
+        points = np.asarray(frame_down)
+        if (self.failures.fitness(points, T_still, self._recent())
+                > self.failures.fitness(points, T_cv, self._recent())):
+            self.n_second_taken += 1
+            return T_still
+        return T_cv
+
+    def _coarse(self, source, guess: np.ndarray, kernel: float, count: bool = True
+                ) -> np.ndarray:
         """Lidar only: where kiss-icp starts aligning source from the constant-velocity guess:
         that guess improved by aligning every odometry.coarse_every-th point of source first
         (kiss-icp's order is its hash map's, scattered), or the guess itself (off, no map yet,
@@ -395,7 +426,7 @@ class Odometry:
         coarse = np.asarray(source)[::self.cfg.odometry.coarse_every]
         if len(coarse) < max(1, self.cfg.data.min_points):
             return guess
-        self.n_coarse += 1
+        self.n_coarse += count  # (a second start's pass is counted as one: n_second_tried)
         return self._registration._align_points_to_map(
             points=_vec(coarse), voxel_map=self._map, initial_guess=guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
@@ -478,7 +509,8 @@ class Odometry:
                 "counters": np.array([self.n_registered, self._last_ref_s, self._first_ref_s,
                                       self.n_refined, self.n_refine_refused,
                                       self.n_refine_unproven, self.n_refine_skipped,
-                                      self._fast_s, self.n_refined_at_speed, self.n_coarse]),
+                                      self._fast_s, self.n_refined_at_speed, self.n_coarse,
+                                      self.n_second_tried, self.n_second_taken]),
                 **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
@@ -499,9 +531,10 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        refined = list(refined) + [0] * (7 - len(refined))  # older: fewer
+        refined = list(refined) + [0] * (9 - len(refined))  # older: fewer
         (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
          self.n_refine_skipped) = (int(v) for v in refined[:4])
         self._fast_s, self.n_refined_at_speed = float(refined[4]), int(refined[5])
         self.n_coarse = int(refined[6])
+        self.n_second_tried, self.n_second_taken = int(refined[7]), int(refined[8])
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)

@@ -239,6 +239,8 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["odometry_refined_at_speed"] = result.refined_at_speed
     # scans kiss-icp registered from a coarse pass's start (odometry.coarse_every)
     summary["odometry_coarse_scans"] = result.coarse_scans
+    summary["odometry_second_start"] = {"tried": result.second_start[0],
+                                        "taken": result.second_start[1]}
     # episodes of failed odometry (lidar_slam.frontend.failure), the scans they started at, and
     # the scans of every local-map reset
     summary["odometry_failures"] = len(result.failure_episodes)
