@@ -196,9 +196,11 @@ class Odometry:
         o = cfg.odometry
         self.cfg = cfg
         # lidar_only (default: without an IMU): the lidar-only coarse pass (_coarse, when
-        # odometry.coarse_every is set) and the wider target of a scan refined at speed
-        # (odometry.refine_keyframes_at_speed); False for an IMU run's calibration pass
+        # odometry.coarse_every is set), the second start (_second_start) and the wider target
+        # of a scan refined at speed (odometry.refine_keyframes_at_speed); False for an IMU
+        # run's calibration pass
         lidar_only = not imu if lidar_only is None else lidar_only
+        self.lidar_only = lidar_only
         self.coarse = lidar_only and o.coarse_every is not None
         # scans that also started from the last pose (_second_start), and of them those kept
         self.n_second_tried = self.n_second_taken = 0
@@ -398,7 +400,7 @@ class Odometry:
         constant-velocity guess: the last motion turned more than odometry.second_start_deg
         and there are keyframes to judge the two by."""
         limit = self.cfg.odometry.second_start_deg
-        return (self.coarse and limit is not None and bool(self._anchors)
+        return (self.lidar_only and limit is not None and bool(self._anchors)
                 and rotation_angle_deg(self.last_delta) > limit)
 
     def _fitter(self, frame_down, T_cv: np.ndarray, T_still: np.ndarray) -> np.ndarray:
