@@ -97,8 +97,9 @@ class OdometryConfig(_Section):
     # points, it never does. Bank, lidar only, three draws (docs/bank.md, "A coarse pass
     # first"). None: off.
     coarse_every: Annotated[int, Field(ge=2, le=2**31 - 1)] | None = 4
-    # Without the IMU, when the last motion turned more than this (deg a scan: a hand-held
-    # flick, a drone's yaw, a trot; a car's turn stays under it), kiss-icp also starts from the
+    # On a scan kiss-icp starts from constant velocity (lidar only, or one the IMU does not
+    # predict), when the last motion turned more than this (deg a scan: a hand-held flick, a
+    # drone's yaw, a trot; a car's turn stays under it), kiss-icp also starts from the
     # last pose (no motion), and the pose whose points fit the last keyframes' clouds better
     # (the failure watch's fitness) is kept: a flick that stops leaves the constant-velocity
     # guess several degrees past the scan, where ICP settles in another minimum. Bank, lidar only,

@@ -554,7 +554,8 @@ def test_a_flick_that_stops_is_registered_from_the_last_pose_too(kitti16):
     """odometry.second_start_deg: a 20 deg turn in one scan, then none. From the constant-velocity
     guess (40 deg) kiss-icp settles 17 deg off the scan's pose; started from the last pose as
     well, the better-fitting pose (against the last keyframe's cloud) is the scan's own.
-    Counted in summary.json (odometry_second_start); never with the IMU's prediction, and not
+    Counted in summary.json (odometry_second_start); never from the IMU's prediction (but on an
+    IMU run's scans it does not predict), not in the T_lidar_imu calibration pass, and not
     after a turn under the limit."""
     from scipy.spatial.transform import Rotation
 
@@ -563,9 +564,10 @@ def test_a_flick_that_stops_is_registered_from_the_last_pose_too(kitti16):
     world = next(iter(open_source(kitti16).scans(0, 1))).points[:, :3].astype(np.float64)
     turned = make_pose(Rotation.from_euler("z", 20, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
 
-    def run(poses, guesses=None, **odometry_cfg):
+    def run(poses, guesses=None, kind=None, **odometry_cfg):
         odo = Odometry(load_config(overrides={"odometry": {"max_num_threads": 1,
-                                                           **odometry_cfg}}), lidar_only=True)
+                                                           **odometry_cfg}}),
+                       **(kind or {"lidar_only": True}))
         out = []
         for k, T in enumerate(poses):
             out.append(odo.register(_seen_from(world, T),
@@ -584,9 +586,44 @@ def test_a_flick_that_stops_is_registered_from_the_last_pose_too(kitti16):
     single, off_deg = run([np.eye(4), turned, turned], second_start_deg=None)
     assert off_deg[2] > 10.0 and single.n_second_tried == 0  # what it mends
     # the IMU's prediction: one start, its own
-    imu, _ = run([np.eye(4), turned, turned], guesses=[None, turned, turned])
+    imu, _ = run([np.eye(4), turned, turned], guesses=[None, turned, turned],
+                 kind={"imu": True})
     assert imu.n_second_tried == 0
+    # an IMU run's scan its IMU does not predict (a gap after the turn): as lidar only
+    unpredicted, off_deg = run([np.eye(4), turned, turned], guesses=[None, turned, None],
+                               kind={"imu": True})
+    assert unpredicted.n_second_tried == 1 and max(off_deg) < 0.1
+    # the T_lidar_imu calibration pass (neither): one start
+    calibration, _ = run([np.eye(4), turned, turned], guesses=[None, turned, None],
+                         kind={"lidar_only": False})
+    assert calibration.n_second_tried == 0
     # a turn under the limit (3 deg a scan): one start
     slow = make_pose(Rotation.from_euler("z", 3, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
     calm, _ = run([np.eye(4), slow, slow @ slow])
     assert calm.n_second_tried == 0
+
+
+def test_resume_rebuilds_the_second_start_exactly(trot_end, tmp_path):
+    """A checkpoint taken at a keyframe of a lidar-only trot whose turns have set off second
+    starts (odometry.second_start_deg): the resumed run starts from the same places, judges by
+    the same keyframes and gives every later pose within 1e-9, trying second starts again."""
+    from lidar_slam import pipeline
+    from lidar_slam.run import checkpoint
+
+    cfg = load_config(overrides={"loop": {"enabled": False},
+                                 "odometry": {"max_num_threads": 1}})
+    scans = list(open_source(trot_end).scans())
+    res_full = _run_whole(cfg, scans, tmp_path / "full")
+    run = tmp_path / "cut"
+    first, k = _cut_at_a_keyframe(cfg, scans, run,
+                                  lambda i, pipe: i >= 20 and pipe.odometry.n_second_tried > 0)
+    tried_before = first.odometry.n_second_tried
+    first.close()
+    resumed = pipeline.Pipeline(cfg, run, resume=True)
+    assert checkpoint.restore(run, resumed) == k
+    for s in scans[k:]:
+        resumed.process(s)
+    res = resumed.finish()
+    resumed.close()
+    assert res.second_start == res_full.second_start and res.second_start[0] > tried_before
+    np.testing.assert_allclose(res.final_poses(), res_full.final_poses(), rtol=0, atol=1e-9)

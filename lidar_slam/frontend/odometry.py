@@ -196,12 +196,15 @@ class Odometry:
         o = cfg.odometry
         self.cfg = cfg
         # lidar_only (default: without an IMU): the lidar-only coarse pass (_coarse, when
-        # odometry.coarse_every is set), the second start (_second_start) and the wider target
-        # of a scan refined at speed (odometry.refine_keyframes_at_speed); False for an IMU
-        # run's calibration pass
+        # odometry.coarse_every is set) and the wider target of a scan refined at speed
+        # (odometry.refine_keyframes_at_speed); False for an IMU run's calibration pass
         lidar_only = not imu if lidar_only is None else lidar_only
-        self.lidar_only = lidar_only
         self.coarse = lidar_only and o.coarse_every is not None
+        # The second start (_second_start) on every scan a run starts from constant velocity:
+        # a lidar-only run's, and an IMU run's that its IMU does not predict (before it is
+        # initialised, across a gap, when it is found unusable: an IMU too short to use leaves
+        # the lidar-only poses); not the T_lidar_imu calibration pass's.
+        self.second_start = (lidar_only or imu) and o.second_start_deg is not None
         # scans that also started from the last pose (_second_start), and of them those kept
         self.n_second_tried = self.n_second_taken = 0
         # imu: the run's IMU predicts the scans (odometry.refine_evidence "with_imu": the
@@ -396,12 +399,11 @@ class Odometry:
         return new_pose
 
     def _second_start(self) -> bool:
-        """Lidar only: whether kiss-icp also starts from the last pose (no motion) besides the
-        constant-velocity guess: the last motion turned more than odometry.second_start_deg
-        and there are keyframes to judge the two by."""
-        limit = self.cfg.odometry.second_start_deg
-        return (self.lidar_only and limit is not None and bool(self._anchors)
-                and rotation_angle_deg(self.last_delta) > limit)
+        """Whether kiss-icp, starting from the constant-velocity guess (not the IMU's), also
+        starts from the last pose (no motion): the last motion turned more than
+        odometry.second_start_deg and there are keyframes to judge the two by."""
+        return (self.second_start and bool(self._anchors) and rotation_angle_deg(
+            self.last_delta) > self.cfg.odometry.second_start_deg)
 
     def _fitter(self, frame_down, T_cv: np.ndarray, T_still: np.ndarray) -> np.ndarray:
         """Of two poses of the scan, from the constant-velocity start and from the last pose,
