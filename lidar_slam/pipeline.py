@@ -69,7 +69,8 @@ class RunResult:
     refined_scans: tuple[int, int, int, int] = (0, 0, 0, 0)
     refined_at_speed: int = 0  # of refined_scans[0]: for a lasting speed (lidar only)
     coarse_scans: int = 0  # registrations that started from a coarse pass (lidar only)
-    # lidar only: scans that also started from the last pose, and of them those it kept
+    # scans from constant velocity that also started from the last pose (odometry.
+    # second_start_deg), and of them those it kept
     second_start: tuple[int, int] = (0, 0)
     # odometry failures (lidar_slam.frontend.failure): scan indices of every local-map reset
     # and of the first reset of each episode
