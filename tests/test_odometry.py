@@ -196,12 +196,28 @@ def _cut_at_a_keyframe(cfg, scans, run, ready):
     raise AssertionError("no keyframe where the cut was wanted")
 
 
+def _resume_to_the_end(cfg, scans, run, k, check=None):
+    """Restore the checkpoint in run (taken after k scans) into a fresh pipeline, call
+    check(pipeline) if given, process the rest of scans and return the finished result."""
+    from lidar_slam import pipeline
+    from lidar_slam.run import checkpoint
+
+    resumed = pipeline.Pipeline(cfg, run, resume=True)
+    try:
+        assert checkpoint.restore(run, resumed) == k
+        if check is not None:
+            check(resumed)
+        for s in scans[k:]:
+            resumed.process(s)
+        return resumed.finish()
+    finally:
+        resumed.close()
+
+
 @pytest.mark.shared_data
 def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe in the middle of a slow stretch, restored into a fresh
     pipeline, continues with the same refinement target: every later pose within 1e-9."""
-    from lidar_slam import pipeline
-    from lidar_slam.run import checkpoint
     from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(kitti_gt, 7)
@@ -217,12 +233,7 @@ def test_resume_rebuilds_the_slow_scan_refinement_exactly(kitti_gt, tmp_path):
     first, k = _cut_at_a_keyframe(cfg, scans, run, lambda i, pipe: i >= 10)
     assert first.odometry.n_refined > 0
     first.close()
-    resumed = pipeline.Pipeline(cfg, run, resume=True)
-    assert checkpoint.restore(run, resumed) == k
-    for s in scans[k:]:
-        resumed.process(s)
-    res = resumed.finish()
-    resumed.close()
+    res = _resume_to_the_end(cfg, scans, run, k)
     assert res.refined_scans[0] > 0
     # the coarse pass's count (odometry_coarse_scans) survives the checkpoint too
     assert res.coarse_scans == res_full.coarse_scans > 0
@@ -274,8 +285,6 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe while a car is refined at speed, against more keyframes
     than a slow scan would be (refine_keyframes_at_speed): the resumed run gets the same
     anchors back and every later pose within 1e-9."""
-    from lidar_slam import pipeline
-    from lidar_slam.run import checkpoint
     from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(kitti_gt, 7)
@@ -294,13 +303,11 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
     assert first.odometry._at_speed()  # cut while the car is refined at speed
     n_anchors, at_speed_before = len(first.odometry._anchors), first.odometry.n_refined_at_speed
     first.close()
-    resumed = pipeline.Pipeline(cfg, run, resume=True)
-    assert checkpoint.restore(run, resumed) == k
-    assert len(resumed.odometry._anchors) == n_anchors
-    for s in scans[k:]:
-        resumed.process(s)
-    res = resumed.finish()
-    resumed.close()
+
+    def same_anchors(resumed):
+        assert len(resumed.odometry._anchors) == n_anchors
+
+    res = _resume_to_the_end(cfg, scans, run, k, check=same_anchors)
     assert res.refined_at_speed > at_speed_before  # refined at speed after the resume too
     np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
 
@@ -607,8 +614,6 @@ def test_resume_rebuilds_the_second_start_exactly(trot_end, tmp_path):
     """A checkpoint taken at a keyframe of a lidar-only trot whose turns have set off second
     starts (odometry.second_start_deg): the resumed run starts from the same places, judges by
     the same keyframes and gives every later pose within 1e-9, trying second starts again."""
-    from lidar_slam import pipeline
-    from lidar_slam.run import checkpoint
 
     cfg = load_config(overrides={"loop": {"enabled": False},
                                  "odometry": {"max_num_threads": 1}})
@@ -619,11 +624,6 @@ def test_resume_rebuilds_the_second_start_exactly(trot_end, tmp_path):
                                   lambda i, pipe: i >= 20 and pipe.odometry.n_second_tried > 0)
     tried_before = first.odometry.n_second_tried
     first.close()
-    resumed = pipeline.Pipeline(cfg, run, resume=True)
-    assert checkpoint.restore(run, resumed) == k
-    for s in scans[k:]:
-        resumed.process(s)
-    res = resumed.finish()
-    resumed.close()
+    res = _resume_to_the_end(cfg, scans, run, k)
     assert res.second_start == res_full.second_start and res.second_start[0] > tried_before
     np.testing.assert_allclose(res.final_poses(), res_full.final_poses(), rtol=0, atol=1e-9)

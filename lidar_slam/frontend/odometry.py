@@ -375,13 +375,10 @@ class Odometry:
         if second and start is not initial_guess:  # both starts through the coarse pass
             start = self._fitter(frame_down, start,
                                  self._coarse(source, self.last_pose, kernel, count=False))
-        new_pose = registration._align_points_to_map(
-            points=source, voxel_map=self._map, initial_guess=start,
-            max_correspondance_distance=3 * kernel, kernel=kernel)
+        new_pose = self._align(registration, source, start, kernel)
         if second and start is initial_guess:  # no coarse pass (a small source): both in full
-            new_pose = self._fitter(frame_down, new_pose, registration._align_points_to_map(
-                points=source, voxel_map=self._map, initial_guess=self.last_pose,
-                max_correspondance_distance=3 * kernel, kernel=kernel))
+            new_pose = self._fitter(frame_down, new_pose,
+                                    self._align(registration, source, self.last_pose, kernel))
         new_pose = quantised(new_pose, self.cfg.odometry.pose_quantum_m)
         if refine and self._anchors:
             mode = self.cfg.odometry.refine_evidence
@@ -431,8 +428,13 @@ class Odometry:
         if len(coarse) < max(1, self.cfg.data.min_points):
             return guess
         self.n_coarse += count  # (a second start's pass is counted as one: n_second_tried)
-        return self._registration._align_points_to_map(
-            points=_vec(coarse), voxel_map=self._map, initial_guess=guess,
+        return self._align(self._registration, _vec(coarse), guess, kernel)
+
+    def _align(self, registration, points, guess: np.ndarray, kernel: float) -> np.ndarray:
+        """kiss-icp's alignment of points (its vector) to its map from guess, its kernel and a
+        correspondence distance of 3 kernels (as kiss-icp's register_frame)."""
+        return registration._align_points_to_map(
+            points=points, voxel_map=self._map, initial_guess=guess,
             max_correspondance_distance=3 * kernel, kernel=kernel)
 
     def step(self, scan: DeskewedScan, initial_guess: np.ndarray | None = None,
