@@ -288,6 +288,13 @@ class OdometryInformationConfig(_Section):
     # 10-11 / 9-10 of 16 against 11-12 at 0.1; docs/bank.md, Decisions).
     min_trans_sigma_m: Positive = 0.005
     min_rot_sigma_deg: Positive = 0.1
+    # Without an IMU every scan is deskewed at constant velocity, and through a flick the pose
+    # fitted to that cloud is off where no lidar constraint sees it: each keyframe's position
+    # covariance gains (this x miss (rad) x the cloud's median range (m))^2 per axis, miss the
+    # largest rotation by which its scan or the 2 before missed the constant-velocity prediction
+    # (frontend.edge_information.deskew_white). 0: off. Set on the bank (docs/bank.md,
+    # Decisions: 0.02 / 0.03 / 0.04 / 0.06).
+    deskew_white_scale: NonNegative = 0.03
 
 
 class BackendConfig(_Section):

@@ -32,11 +32,13 @@ from __future__ import annotations
 import numpy as np
 
 from lidar_slam.config import OdometryInformationConfig
-from lidar_slam.geometry import relative
+from lidar_slam.geometry import relative, rotation_angle_deg
 from lidar_slam.registration import PlaneTarget, plane_fit, voxel_centroids
 
 WEAK_INFORMATION = np.diag([np.radians(10.0) ** -2] * 3 + [1.0] * 3)
 MIN_RESIDUALS = 30  # fewer inliers than this: the configured sigmas instead
+# A flick's deskew error stays in the odometry for a few scans (the keyframe's and 2 before).
+DESKEW_WINDOW = 2
 
 
 def information(fit_hessian: np.ndarray, rms_m: float, cfg: OdometryInformationConfig
@@ -92,3 +94,28 @@ class EdgeInformation:
         if fit.n < MIN_RESIDUALS:
             return None
         return information(fit.hessian, fit.rms_m, c)
+
+
+def deskew_white(odom_poses: np.ndarray, kf_positions: dict[int, int],
+                 kf_ranges: dict[int, float], scale: float, window: int = DESKEW_WINDOW
+                 ) -> dict[int, float]:
+    """The variance (m^2, per axis) of each keyframe's position error that a deskew at constant
+    velocity leaves and no lidar constraint can see: (scale x miss x range)^2, miss the largest
+    rotation (rad) by which a registered scan missed the constant-velocity prediction it was
+    deskewed with, over the keyframe's scan and the `window` before it, and range the keyframe
+    cloud's median range (m). Through a hand-held flick the sweep is deskewed along a motion it
+    did not have; its cloud, and the pose fitted to it, are then a few decimetres off for the
+    next scans while every registration of that cloud agrees with it (docs/bank.md, "A
+    keyframe's deskew error"). odom_poses: (K, 4, 4) every registered scan in order;
+    kf_positions: {keyframe: its scan's position in odom_poses}; kf_ranges: {keyframe: m}."""
+    T = np.asarray(odom_poses, dtype=float)
+    miss = np.zeros(len(T))
+    if len(T) >= 3:
+        # the constant-velocity prediction of scan p: T[p-1] moved again by T[p-2] -> T[p-1]
+        pred = T[1:-1] @ np.linalg.inv(T[:-2]) @ T[1:-1]
+        miss[2:] = np.radians(rotation_angle_deg(np.linalg.inv(pred) @ T[2:]))
+    out = {}
+    for kf, p in kf_positions.items():
+        m = float(miss[max(0, p - window):p + 1].max()) if 0 <= p < len(T) else 0.0
+        out[kf] = (scale * m * float(kf_ranges.get(kf, 0.0))) ** 2
+    return out
