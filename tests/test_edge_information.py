@@ -301,3 +301,39 @@ def test_a_loop_that_tilts_the_query_against_the_imus_gravity_is_refused(tmp_pat
     assert refused.constraint is None and not refused.records[0].accepted
     assert refused.records[0].reason.startswith("gravity: tilt 5.0 deg")
     pipe.close()
+
+
+def _turning(n: int, deg_per_scan: float) -> list[np.ndarray]:
+    """n poses 1 m apart turning deg_per_scan about z at every scan: constant velocity."""
+    from lidar_slam.geometry import matrix_from_rotvec
+
+    out, T = [], np.eye(4)
+    step = make_pose(matrix_from_rotvec([0.0, 0.0, np.radians(deg_per_scan)]), [1.0, 0.0, 0.0])
+    for _ in range(n):
+        out.append(T.copy())
+        T = T @ step
+    return out
+
+
+def test_a_keyframe_after_a_flick_carries_the_deskews_white_error_and_a_steady_one_none():
+    """(scale x miss x range)^2: the miss is the rotation by which a scan left the constant-
+    velocity prediction, the largest over the keyframe's scan and the two before, so a flick
+    at scan 10 reaches the keyframes at scans 10-12 and no other; a steady turn misses nothing."""
+    from lidar_slam.frontend.edge_information import deskew_white
+    from lidar_slam.geometry import matrix_from_rotvec
+
+    poses = _turning(20, 3.0)
+    kfs = {k: p for k, p in enumerate(range(0, 20, 1))}
+    ranges = dict.fromkeys(kfs, 8.0)
+    assert max(deskew_white(poses, kfs, ranges, 0.03).values()) < 1e-20
+    flick = np.radians(5.0)  # scan 10 turns 5 deg more about x, and stays there
+    R = make_pose(matrix_from_rotvec([flick, 0.0, 0.0]), [0.0, 0.0, 0.0])
+    poses = poses[:10] + [T @ R for T in poses[10:]]
+    white = deskew_white(poses, kfs, ranges, 0.03)
+    # scan 11 misses too: the prediction carries scan 10's flick on
+    for k in (10, 11, 12, 13):
+        assert white[k] == pytest.approx((0.03 * flick * 8.0) ** 2, rel=1e-6), k
+    assert max(white[k] for k in kfs if k < 10 or k > 13) < 1e-20
+    assert max(deskew_white(poses, kfs, ranges, 0.0).values()) == 0.0
+    # a keyframe with an empty cloud (range 0) and one past the scans get nothing
+    assert deskew_white(poses, {0: 11, 1: 99}, {0: 0.0, 1: 8.0}, 0.03) == {0: 0.0, 1: 0.0}
