@@ -390,3 +390,43 @@ def test_the_imu_extrinsic_and_gravity_alignment_need_no_scipy_spatial(rpy):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
+
+
+def test_a_poses_covariance_relative_to_the_anchor_is_that_of_x0_inverse_xk():
+    """relative_covariances: with X_0, X_k perturbed on the right by a joint Gaussian (xi_0,
+    xi_k), the spread of log(T_0k^-1 X_0'^-1 X_k') is C_kk + A C_00 A' - C_k0 A' - A C_0k,
+    A = Ad(X_k^-1 X_0): checked by drawing 40000 perturbations. A tilt of X_0 alone turns X_k's
+    position about X_0 by the distance between them, which the marginal of X_k does not say."""
+    import gtsam
+
+    from lidar_slam.backend import inertial_graph
+
+    rng = np.random.default_rng(3)
+    X0 = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.02, -0.01, 0.3), np.array([1.0, 2.0, 0.1]))
+    Xk = gtsam.Pose3(gtsam.Rot3.RzRyRx(-0.03, 0.02, 1.2), np.array([60.0, -20.0, 1.5]))
+    values = gtsam.Values()
+    values.insert(inertial_graph.X(0), X0)
+    values.insert(inertial_graph.X(7), Xk)
+    B = np.r_[[1e-4] * 3, [2e-2] * 3, [2e-4] * 3, [5e-2] * 3][:, None] * rng.normal(size=(12, 12))
+    J = B @ B.T  # the joint covariance of (xi_0, xi_k)
+    marg = {0: J[:6, :6], 7: J[6:, 6:]}
+    cross = {0: J[:6, :6], 7: J[6:, :6]}  # cov(xi_k, xi_0)
+    rel = inertial_graph.relative_covariances(marg, cross, values, 0)
+    np.testing.assert_allclose(rel[0], J[:6, :6])  # the anchor keeps its own marginal
+    draws = rng.multivariate_normal(np.zeros(12), J, size=40000)
+    T0k = X0.between(Xk)
+    xi = np.array([gtsam.Pose3.Logmap(T0k.between(X0.compose(gtsam.Pose3.Expmap(d[:6])).between(
+        Xk.compose(gtsam.Pose3.Expmap(d[6:]))))) for d in draws])
+    empirical = np.cov(xi.T)
+    sd = np.sqrt(np.diag(rel[7]))
+    np.testing.assert_allclose(empirical / np.outer(sd, sd), rel[7] / np.outer(sd, sd),
+                               atol=0.03)
+    # X_0's tilt alone (1 mrad about its x axis), X_k exact: X_k's position relative to X_0 is
+    # 1 mrad x its lever arm about that axis unsure, which its own marginal (zero) does not say
+    C00 = np.zeros((6, 6))
+    C00[0, 0] = 1e-6
+    tilt = inertial_graph.relative_covariances({0: C00, 7: np.zeros((6, 6))},
+                                               {0: C00, 7: np.zeros((6, 6))}, values, 0)[7]
+    lever = X0.inverse().compose(Xk).translation()
+    drift = np.linalg.norm(lever[1:]) * 1e-3  # about x: the y-z part of the lever arm
+    assert np.sqrt(np.trace(tilt[3:, 3:])) == pytest.approx(drift, rel=1e-6)

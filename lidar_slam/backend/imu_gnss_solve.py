@@ -578,7 +578,10 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         summary.setdefault("gnss", {})["warning"] = (
             f"{len(used) - int(used.sum())} of {len(used)} fixes rejected: the geo-reference "
             f"rests on the {int(used.sum())} kept")
-    sol = sol.with_covariances()  # of the last solve only
+    # of the last solve only, each pose's relative to the first keyframe's: the written poses
+    # are (the output anchors there), and gravity places its tilt only so surely
+    anchor = keys[0]
+    sol = sol.with_covariances(anchor)
     scale_sigma = cfg.backend.odometry_scale_sigma
     if links and scale_sigma is not None and sol.covariances:
         # The odometry's scale as a consider parameter: how far the solution moves when every
@@ -588,7 +591,7 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
                                         _scaled(imu_edges, 1.0 + scale_sigma),
                                         links, gnss_factors(used), prior_mean, prior_cov,
                                         BIAS_SIGMA, GNSS_HUBER_K, mount_sigma, drift)
-        step = inertial_graph.pose_steps(graph, sol.estimate, list(sol.covariances))
+        step = inertial_graph.pose_steps(graph, sol.estimate, list(sol.covariances), anchor)
         covs = {k: c + np.outer(step[k], step[k]) for k, c in sol.covariances.items()}
         sol = dataclasses.replace(sol, covariances=covs)
     T_S_lidar = lidar_poses(sol)

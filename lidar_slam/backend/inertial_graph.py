@@ -66,12 +66,13 @@ class InertialSolution:
     graph: object = field(default=None, repr=False)
     estimate: object = field(default=None, repr=False)
 
-    def with_covariances(self) -> InertialSolution:
-        """Itself with the poses' covariances (computed now if the solve did not)."""
+    def with_covariances(self, anchor: int | None = None) -> InertialSolution:
+        """Itself with the poses' covariances (computed now if the solve did not); with an
+        anchor, of each pose relative to that one (relative_covariances)."""
         if self.covariances or self.graph is None:
             return self
         return dataclasses.replace(self, covariances=pose_covariances(
-            self.graph, self.estimate, list(self.poses)))
+            self.graph, self.estimate, list(self.poses), anchor))
 
 
 def _noise(information: np.ndarray, robust_k: float | None):
@@ -273,8 +274,9 @@ def mount_edge(e: BetweenFactor, noise, keys: tuple[int, int] | None = None
 
 
 def pose_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                     keys: list[int]) -> dict[int, np.ndarray]:
-    """Marginal covariance (6x6, rotation first, node frame) of every pose X(k) at the solution.
+                     keys: list[int], anchor: int | None = None) -> dict[int, np.ndarray]:
+    """Marginal covariance (6x6, rotation first, node frame) of every pose X(k) at the solution;
+    with an anchor, of every pose relative to X(anchor) (relative_covariances).
 
     gtsam's Marginals (COLAMD ordering) calls these graphs indeterminate near the last
     velocities (00 and synthetic drives, with or without GNSS), while the same Hessian is
@@ -282,36 +284,87 @@ def pose_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     eliminated in METIS order (which succeeds; the same covariances as a sparse LU, to 5e-7),
     COLAMD next, and the diagonal blocks of the inverse Hessian by a sparse LU (scipy) last."""
     gfg = graph.linearize(values)
+    out = None
     for ordering in (gtsam.Ordering.MetisGaussianFactorGraph,
                      gtsam.Ordering.ColamdGaussianFactorGraph):
         try:
             tree = gfg.eliminateMultifrontal(ordering(gfg))
-            return {k: _symmetric(tree.marginalCovariance(X(k))) for k in keys}
+            out = {k: _symmetric(tree.marginalCovariance(X(k))) for k in keys}
+            break
         except RuntimeError:  # gtsam's IndeterminantLinearSystemException
             continue
-    return _lu_covariances(gfg, keys)
+    if out is None:
+        out = _lu_covariances(gfg, keys)
+    if anchor is None:
+        return out
+    return relative_covariances(out, _anchor_columns(gfg, keys, anchor), values, anchor)
+
+
+def relative_covariances(marginals: dict[int, np.ndarray],
+                         cross: dict[int, np.ndarray], values: gtsam.Values, anchor: int
+                         ) -> dict[int, np.ndarray]:
+    """Covariance (node frame) of each pose relative to the anchor's, T_0k = X_0^-1 X_k: with
+    X_k = X_k^ Exp(xi_k), T_0k = T_0k^ Exp(xi_k - Ad(T_k0) xi_0) to first order, so
+    C_rel = C_kk + A C_00 A' - C_k0 A' - A C_0k with A = Ad(X_k^-1 X_0). The run's poses are
+    written relative to its first keyframe (poses_kitti.txt: frame 0 at its stamp is the
+    identity), while the solve with the IMU places that keyframe in the gravity frame only as
+    surely as gravity says (its tilt): a tilt error of it turns every written position about
+    it, which the marginals alone do not carry. The anchor keeps its own marginal (how surely
+    gravity places the written frame). cross: {k: cov(xi_k, xi_0)}."""
+    X0 = values.atPose3(X(anchor))
+    out = {}
+    for k, c in marginals.items():
+        if k == anchor:  # its own marginal: how surely gravity places the written frame
+            out[k] = c
+            continue
+        A = np.asarray(values.atPose3(X(k)).between(X0).AdjointMap(), dtype=np.float64)
+        ck0 = cross[k]
+        out[k] = _symmetric(c + A @ marginals[anchor] @ A.T - ck0 @ A.T - A @ ck0.T)
+    return out
+
+
+def _anchor_columns(gfg: gtsam.GaussianFactorGraph, keys: list[int], anchor: int
+                    ) -> dict[int, np.ndarray]:
+    """cov(xi_k, xi_anchor) (6x6 each) from the inverse Hessian's anchor columns (sparse LU;
+    COLAMD: 3-12 ms on the bank's solves where the default ordering took up to 80)."""
+    offsets, lu, Jtb = _normal_equations(gfg, "COLAMD")
+    E = np.zeros((len(Jtb), 6))
+    E[offsets[X(anchor)]:offsets[X(anchor)] + 6] = np.eye(6)
+    Z = lu.solve(E)
+    return {k: Z[offsets[X(k)]:offsets[X(k)] + 6] for k in keys}
 
 
 def pose_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               keys: list[int]) -> dict[int, np.ndarray]:
+               keys: list[int], anchor: int | None = None) -> dict[int, np.ndarray]:
     """One Gauss-Newton step of graph from values: its 6-vector (rotation first, node frame) for
-    every pose X(k). Eliminated as pose_covariances does (METIS, COLAMD, then a sparse LU)."""
+    every pose X(k); with an anchor, of every pose relative to X(anchor) (xi_k - Ad(X_k^-1 X_0)
+    xi_0, as relative_covariances). Eliminated as pose_covariances does (METIS, COLAMD, then a
+    sparse LU)."""
     gfg = graph.linearize(values)
+    out = None
     for ordering in (gtsam.Ordering.MetisGaussianFactorGraph,
                      gtsam.Ordering.ColamdGaussianFactorGraph):
         try:
             step = gfg.optimize(ordering(gfg))
-            return {k: np.asarray(step.at(X(k)), dtype=np.float64) for k in keys}
+            out = {k: np.asarray(step.at(X(k)), dtype=np.float64) for k in keys}
+            break
         except RuntimeError:  # gtsam's IndeterminantLinearSystemException
             continue
-    offsets, lu, Jtb = _normal_equations(gfg)
-    x = lu.solve(Jtb)
-    return {k: x[offsets[X(k)]:offsets[X(k)] + 6] for k in keys}
+    if out is None:
+        offsets, lu, Jtb = _normal_equations(gfg)
+        x = lu.solve(Jtb)
+        out = {k: x[offsets[X(k)]:offsets[X(k)] + 6] for k in keys}
+    if anchor is None:
+        return out
+    X0 = values.atPose3(X(anchor))
+    return {k: v - np.asarray(values.atPose3(X(k)).between(X0).AdjointMap()) @ out[anchor]
+            for k, v in out.items()}
 
 
-def _normal_equations(gfg: gtsam.GaussianFactorGraph):
+def _normal_equations(gfg: gtsam.GaussianFactorGraph, permc_spec: str = "MMD_AT_PLUS_A"):
     """gtsam's linear system (min |J x - b|) as sparse normal equations: the column offset of
-    every key (sparseJacobian_'s order: keys sorted, then b), the sparse LU of J^T J, J^T b."""
+    every key (sparseJacobian_'s order: keys sorted, then b), the sparse LU of J^T J (SuperLU's
+    column ordering permc_spec), J^T b."""
     from scipy.sparse import csc_matrix
     from scipy.sparse.linalg import splu
 
@@ -325,7 +378,7 @@ def _normal_equations(gfg: gtsam.GaussianFactorGraph):
     J = csc_matrix((vals[inside], (r[inside], c[inside])), shape=(int(r.max()) + 1, n))
     b = np.zeros(J.shape[0])
     np.add.at(b, r[~inside], vals[~inside])
-    return offsets, splu(csc_matrix(J.T @ J), permc_spec="MMD_AT_PLUS_A"), J.T @ b
+    return offsets, splu(csc_matrix(J.T @ J), permc_spec=permc_spec), J.T @ b
 
 
 def _symmetric(cov) -> np.ndarray:
