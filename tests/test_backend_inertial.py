@@ -430,3 +430,45 @@ def test_a_poses_covariance_relative_to_the_anchor_is_that_of_x0_inverse_xk():
     lever = X0.inverse().compose(Xk).translation()
     drift = np.linalg.norm(lever[1:]) * 1e-3  # about x: the y-z part of the lever arm
     assert np.sqrt(np.trace(tilt[3:, 3:])) == pytest.approx(drift, rel=1e-6)
+
+
+def test_the_joint_covariance_has_the_written_covariances_on_its_diagonal(drive):
+    """solve(joint=True), for tools/nees_spread.py: every keyframe's 6x6 block of the joint
+    covariance is its written covariance (relative to the first keyframe, the scale's consider
+    term and the output frames included), and the poses are those of the plain solve."""
+    plain = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(), drive.imu,
+                         None)
+    out = solver.solve(drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(), drive.imu,
+                       None, joint=True)
+    assert plain.joint_covariance is None
+    keys = sorted(out.covariances)
+    assert out.joint_covariance.shape == (6 * len(keys), 6 * len(keys))
+    for i, k in enumerate(keys):
+        np.testing.assert_array_equal(out.kf_poses[k], plain.kf_poses[k])
+        block = out.joint_covariance[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+        # the written ones are the Bayes tree's marginals with LU cross terms, the joint all LU:
+        # the same to 1e-3 of each axis's sd (the relative covariance cancels much of C_kk)
+        sd = np.sqrt(np.diag(out.covariances[k]))
+        np.testing.assert_allclose(block / np.outer(sd, sd),
+                                   out.covariances[k] / np.outer(sd, sd), atol=1e-3)
+
+
+def test_nees_spread_reads_a_solve_replay_capture(drive, tmp_path):
+    """tools/nees_spread.py --captures: a capture (the solve's pickled arguments, as
+    tools/solve_replay.py writes them) gives the joint's position blocks without keyframe 0 and
+    the written position covariances; a consistent run's mean NEES then centres near 3."""
+    import importlib
+    import pickle
+
+    tool = importlib.import_module("tools.nees_spread")
+    path = tmp_path / "drive.pkl"
+    path.write_bytes(pickle.dumps(((drive.cfg, drive.T_world_kf, drive.edges, drive.trajectory(),
+                                    drive.imu, None), {})))
+    C, P = tool.capture_covariance(path)
+    assert C.shape == (3 * len(P), 3 * len(P)) and len(P) == len(drive.kf_frames) - 1
+    for j, p in enumerate(P):
+        sd = np.sqrt(np.diag(p))
+        np.testing.assert_allclose(C[3 * j:3 * j + 3, 3 * j:3 * j + 3] / np.outer(sd, sd),
+                                   p / np.outer(sd, sd), atol=1e-3)
+    n = tool.spread(C, P, 2000)
+    assert 2.0 < np.mean(n) < 4.0

@@ -16,7 +16,7 @@ def replay():
 
 
 def test_overrides_keep_the_configs_types_and_touch_nothing_else():
-    cfg = replay()._override(SlamConfig(), ["backend.inertial_odom_min_rot_sigma_deg=0.005",
+    cfg = replay().override(SlamConfig(), ["backend.inertial_odom_min_rot_sigma_deg=0.005",
                                             "backend.max_iterations=7"])
     assert cfg.backend.inertial_odom_min_rot_sigma_deg == 0.005
     assert cfg.backend.max_iterations == 7 and isinstance(cfg.backend.max_iterations, int)
@@ -35,9 +35,9 @@ def test_keyframe_ate_is_zero_for_a_rigid_copy_and_the_rmse_otherwise():
 
 def test_settings_are_read_as_yaml_and_validated():
     from lidar_slam.config import SlamConfig
-    from tools.solve_replay import _override
+    from tools.solve_replay import override
 
-    cfg = _override(SlamConfig(), ["backend.odometry_drift_state=false",
+    cfg = override(SlamConfig(), ["backend.odometry_drift_state=false",
                                    "imu.T_lidar_imu_sigma_deg=0.5", "backend.huber_k=2"])
     assert cfg.backend.odometry_drift_state is False and cfg.imu.T_lidar_imu_sigma_deg == 0.5
     assert cfg.backend.huber_k == 2.0
@@ -45,4 +45,4 @@ def test_settings_are_read_as_yaml_and_validated():
     from pydantic import ValidationError
 
     with pytest.raises(ValidationError):
-        _override(SlamConfig(), ["backend.huber_k=-1"])
+        override(SlamConfig(), ["backend.huber_k=-1"])

@@ -1,6 +1,7 @@
 """What mean NEES a lidar-only run would show if its covariances were exactly right.
 
 Usage: python tools/nees_spread.py RUN [RUN ...] [--bank-json FILE] [--draws 4000]
+       python tools/nees_spread.py --captures DIR [--bank-json FILE] [--only NAME,...]
 
 The bank's covariance bar is the mean, over one run's keyframes, of each keyframe position's
 NEES e' P^-1 e (3 when consistent; issue 29 asks for 1..9 on every sequence). Consecutive
@@ -18,7 +19,11 @@ the final poses; keyframe 0 anchored as the pipeline does), scaled by the run's 
 variance factor and widened by each keyframe's deskew error as covariances.csv says (the
 rotation blocks give the factor, each position block's excess is that keyframe's own
 independent term). For runs whose covariances came from the solve with the IMU or GNSS the
-lidar graph is not what they are: such runs are refused.
+lidar graph is not what they are: such runs are refused. For them, --captures takes the
+captures of tools/solve_replay.py (the solve's inputs, one per bank sequence), solves each again
+with its joint covariance (imu_gnss_solve.solve(joint=True): every keyframe pose relative to the
+first, as covariances.csv) and prints the same; the run's own NEES is the bank JSON's first draw
+of `lidar-slam` (the captures are of that draw).
 """
 
 from __future__ import annotations
@@ -108,6 +113,30 @@ def spread(C: np.ndarray, P: list[np.ndarray], draws: int, seed: int = 0) -> np.
     return np.einsum("mki,kij,mkj->mk", e, Pinv, e).mean(axis=1)
 
 
+def capture_covariance(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(C, P) as joint_position_covariance gives them, from the solve with the IMU of one
+    tools/solve_replay.py capture solved again with its joint covariance."""
+    import pickle
+
+    from lidar_slam.backend import imu_gnss_solve
+    from tools import solve_replay
+
+    args, kwargs = pickle.loads(path.read_bytes())
+    cfg = solve_replay.override(args[0], [])
+    result = imu_gnss_solve.solve(cfg, *args[1:], **kwargs, joint=True)
+    keys = sorted(result.covariances)
+    idx = np.concatenate([np.arange(6 * i + 3, 6 * i + 6) for i in range(1, len(keys))])
+    C = result.joint_covariance[np.ix_(idx, idx)]
+    return C, [result.covariances[k][3:, 3:] for k in keys[1:]]
+
+
+def _row(label: str, n: np.ndarray, keyframes: int, factor: str, own: float | None) -> str:
+    tail = f"{own:.2f} | {np.mean(n <= own):.3f}" if own is not None else "- | -"
+    return (f"{label} | {keyframes} | {factor} | {np.percentile(n, 5):.2f} / {np.median(n):.2f}"
+            f" / {np.percentile(n, 95):.2f} | {np.mean(n < 1):.3f} | {np.mean(n > 9):.3f} | "
+            f"{tail}")
+
+
 def observed(bank_json: dict, run: Path) -> float | None:
     """The run's own mean NEES from a tools/bank.py JSON (its sequence, system and draw)."""
     system, name = run.name, run.parent.name
@@ -123,13 +152,23 @@ def observed(bank_json: dict, run: Path) -> float | None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("runs", nargs="*", type=Path)
     ap.add_argument("--bank-json", type=Path)
     ap.add_argument("--draws", type=int, default=4000)
+    ap.add_argument("--captures", type=Path, help="tools/solve_replay.py captures (with IMU)")
+    ap.add_argument("--only", default="", help="with --captures: these sequences (a,b,...)")
     args = ap.parse_args(argv)
     bank_json = json.loads(args.bank_json.read_text()) if args.bank_json else {}
     print("run | keyframes | variance factor | mean NEES if consistent: 5 / 50 / 95 % | "
           "P(< 1) | P(> 9) | the run's | its quantile")
+    only = {n for n in args.only.split(",") if n}
+    for path in sorted(args.captures.glob("*.pkl")) if args.captures else []:
+        if only and path.stem not in only:
+            continue
+        C, P = capture_covariance(path)
+        cell = bank_json.get("results", {}).get(path.stem, {}).get("lidar-slam", {})
+        print(_row(path.stem, spread(C, P, args.draws), len(P), "-", cell.get("nees_mean")),
+              flush=True)
     for run in args.runs:
         summary = json.loads((run / "summary.json").read_text())
         if summary.get("imu", {}).get("factors") or summary.get("gnss", {}).get("used"):
@@ -141,12 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, FileNotFoundError) as exc:
             print(f"{run}: {exc}")
             continue
-        n = spread(C, P, args.draws)
-        own = observed(bank_json, run)
-        tail = (f"{own:.2f} | {np.mean(n <= own):.3f}" if own is not None else "- | -")
-        print(f"{run} | {len(P)} | {factor:.2f} | {np.percentile(n, 5):.2f} / "
-              f"{np.median(n):.2f} / {np.percentile(n, 95):.2f} | {np.mean(n < 1):.3f} | "
-              f"{np.mean(n > 9):.3f} | {tail}")
+        print(_row(str(run), spread(C, P, args.draws), len(P), f"{factor:.2f}",
+                   observed(bank_json, run)), flush=True)
     return 0
 
 

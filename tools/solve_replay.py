@@ -83,7 +83,7 @@ def _fields(model) -> dict:
             for k, v in vars(model).items() if k in names}
 
 
-def _override(cfg, settings: list[str]):
+def override(cfg, settings: list[str]):
     """cfg with SECTION.KEY=VALUE settings, each VALUE read as YAML (false, 0.5, null, [1, 2])
     and the whole validated again."""
     import yaml
@@ -105,7 +105,7 @@ def replay(captures: Path, settings: list[str], root: Path, only: set[str]) -> N
         if only and name not in only:
             continue
         args, kwargs = pickle.loads(path.read_bytes())
-        cfg, T_world_kf, tr = _override(args[0], settings), args[1], args[3]
+        cfg, T_world_kf, tr = override(args[0], settings), args[1], args[3]
         keys = sorted(T_world_kf)
         seq = benchmark.load_sequence(str(root / name), 0, None, {})
         gt = benchmark.truth_at(seq, tr.kf_stamps_s[keys])

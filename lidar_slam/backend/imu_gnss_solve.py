@@ -111,6 +111,9 @@ class InertialResult:
     # T_world_lidar at the stamps of the frames between two keyframes linked by the IMU (keyed
     # by the frame's position in the run): see imu_frame_poses
     frame_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    # solve(joint=True) only (tools/nees_spread.py): the joint covariance (6N x 6N, rotation first
+    # per pose) of the keyframes in sorted order, as `covariances` are, cross terms included
+    joint_covariance: np.ndarray | None = None
 
 
 def _velocities(T_world_kf: dict[int, np.ndarray], tr: RunTrajectory, C: np.ndarray
@@ -467,8 +470,10 @@ def _prior_covariance(R_S_node: np.ndarray, rot_sigma: np.ndarray, trans_sigma: 
 
 def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[BetweenFactor],
           tr: RunTrajectory, imu: ImuSamples | None, fixes: GnssFixes | None,
-          odom_information: dict[int, np.ndarray] | None = None) -> InertialResult | None:
+          odom_information: dict[int, np.ndarray] | None = None, joint: bool = False
+          ) -> InertialResult | None:
     """The final solve with every factor (see the module docstring); None without IMU and GNSS.
+    joint: also the joint covariance of all keyframe poses (InertialResult.joint_covariance).
     When neither can be used, the poses given, with the reasons in the summary and reports."""
     if imu is None and fixes is None:
         return None
@@ -594,6 +599,8 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
         step = inertial_graph.pose_steps(graph, sol.estimate, list(sol.covariances), anchor)
         covs = {k: c + np.outer(step[k], step[k]) for k, c in sol.covariances.items()}
         sol = dataclasses.replace(sol, covariances=covs)
+    else:
+        step = None
     T_S_lidar = lidar_poses(sol)
     if sol.mount_correction is not None:  # the nodes are the IMU turned by it
         C = C @ sol.mount_correction
@@ -605,6 +612,15 @@ def solve(cfg: SlamConfig, T_world_kf: dict[int, np.ndarray], edges: list[Betwee
     result = InertialResult({k: T_world_S @ T for k, T in T_S_lidar.items()},
                             {k: Ad[k] @ c @ Ad[k].T for k, c in sol.covariances.items()},
                             T_S_world_out, enu if tied is not None else None)
+    if joint and sol.graph is not None:
+        J = inertial_graph.joint_pose_covariance(sol.graph, sol.estimate, keys, anchor)
+        if step is not None:
+            s_all = np.concatenate([step[k] for k in keys])
+            J = J + np.outer(s_all, s_all)
+        D = np.zeros_like(J)
+        for i, k in enumerate(keys):
+            D[6 * i:6 * i + 6, 6 * i:6 * i + 6] = Ad[k]
+        result.joint_covariance = D @ J @ D.T
     if links:
         C_inv = inverse(C)
         frames = imu_frame_poses(links, sol, ImuStream(imu), combined_params(cfg.imu),

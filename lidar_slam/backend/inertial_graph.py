@@ -323,6 +323,31 @@ def relative_covariances(marginals: dict[int, np.ndarray],
     return out
 
 
+def joint_pose_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                          keys: list[int], anchor: int | None = None) -> np.ndarray:
+    """The joint covariance (6N x 6N, rotation first per pose, node frames, keys' order) of the
+    poses X(k) at the solution, from the inverse Hessian's pose columns (sparse LU); with an
+    anchor, of each pose relative to it as relative_covariances (the anchor's own rows as its
+    marginal): its diagonal blocks are pose_covariances'. For tools (the spread of a run's
+    NEES), not the run: 6N right-hand sides."""
+    gfg = graph.linearize(values)
+    offsets, lu, Jtb = _normal_equations(gfg, "COLAMD")
+    cols = np.concatenate([np.arange(offsets[X(k)], offsets[X(k)] + 6) for k in keys])
+    E = np.zeros((len(Jtb), len(cols)))
+    E[cols, np.arange(len(cols))] = 1.0
+    S = lu.solve(E)[cols]
+    if anchor is None:
+        return _symmetric(S)
+    T = np.eye(len(cols))
+    X0 = values.atPose3(X(anchor))
+    a = keys.index(anchor)
+    for i, k in enumerate(keys):
+        if k != anchor:
+            T[6 * i:6 * i + 6, 6 * a:6 * a + 6] = -np.asarray(
+                values.atPose3(X(k)).between(X0).AdjointMap(), dtype=np.float64)
+    return _symmetric(T @ S @ T.T)
+
+
 def _anchor_columns(gfg: gtsam.GaussianFactorGraph, keys: list[int], anchor: int
                     ) -> dict[int, np.ndarray]:
     """cov(xi_k, xi_anchor) (6x6 each) from the inverse Hessian's anchor columns (sparse LU;
