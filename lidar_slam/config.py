@@ -289,9 +289,10 @@ class OdometryInformationConfig(_Section):
     min_trans_sigma_m: Positive = 0.005
     min_rot_sigma_deg: Positive = 0.1
     # Without an IMU every scan is deskewed at constant velocity, and through a flick the pose
-    # fitted to that cloud is off where no lidar constraint sees it: each keyframe's position
-    # covariance gains (this x miss (rad) x the cloud's median range (m))^2 per axis, miss the
-    # largest rotation by which its scan or the 2 before missed the constant-velocity prediction
+    # fitted to that cloud is off where no lidar constraint sees it: when the final solve has no
+    # IMU factors each keyframe's position covariance gains (this x miss (rad) x the cloud's
+    # median range (m))^2 per axis, miss the largest rotation by which the odometry pose of its
+    # scan or the 2 before (at the scans' stamps) missed the constant-velocity prediction
     # (frontend.edge_information.deskew_white). 0: off. Set on the bank (docs/bank.md,
     # Decisions: 0.02 / 0.03 / 0.04 / 0.06).
     deskew_white_scale: NonNegative = 0.03

@@ -72,9 +72,10 @@ class RunResult:
     # scans from constant velocity that also started from the last pose (odometry.
     # second_start_deg), and of them those it kept
     second_start: tuple[int, int] = (0, 0)
-    # Lidar only: the deskew's white position sd added to the keyframes' covariances
-    # (backend.odom_information.deskew_white_scale): keyframes given 1 cm or more, the largest (m)
-    deskew_white: tuple[int, float] = (0, 0.0)
+    # Without IMU factors in the final solve: the deskew's white position sd added to the
+    # keyframes' covariances (backend.odom_information.deskew_white_scale): keyframes given 1 cm
+    # or more, the largest (m); None where the solve had IMU factors (not added)
+    deskew_white: tuple[int, float] | None = (0, 0.0)
     # odometry failures (lidar_slam.frontend.failure): scan indices of every local-map reset
     # and of the first reset of each episode
     failure_resets: list[int] = field(default_factory=list)
@@ -441,7 +442,7 @@ class Pipeline:
                     self._add_node(kf_id, None if self.edge_information is None
                                    else self.edge_information.stored(r.store, kf_id))
             r.kf_poses = self.backend.finish()
-            r.kf_covariances = self._with_deskew_white(self.backend.covariances)
+            r.kf_covariances = self.backend.covariances
             r.loop_update_s = self.backend.loop_update_s
             r.loop_backend, r.backend_init = self.backend.loop_status, self.backend.final_init
             if use_inertial and r.kf_poses:
@@ -459,19 +460,27 @@ class Pipeline:
             from lidar_slam.backend.slam_backend import chain_covariances
 
             r.kf_poses = self.current_kf_poses()
-            r.kf_covariances = self._with_deskew_white(
-                chain_covariances(self.cfg.backend, r.kf_poses, r.odom_information))
+            r.kf_covariances = chain_covariances(self.cfg.backend, r.kf_poses,
+                                                 r.odom_information)
+        r.kf_covariances = self._with_deskew_white(r.kf_covariances)
         return r
 
     def _with_deskew_white(self, covariances: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """The lidar graph's keyframe covariances with the position error a constant-velocity
-        deskew leaves (frontend.edge_information.deskew_white) added, when the odometry
-        deskewed every scan so (no IMU); else as they are."""
+        """The final keyframe covariances with the position error a constant-velocity deskew
+        leaves (frontend.edge_information.deskew_white) added, when no IMU is in the final
+        solve: lidar only, GNSS only (fixes metres apart and sure to decimetres do not see it),
+        an IMU switched off by the check or too short to use (the scans before a switch-off
+        were deskewed by the IMU: there the term is more than their error). With IMU factors
+        the solve's own white terms stand; None in summary.json says so."""
         from lidar_slam.frontend.edge_information import deskew_white
 
         scale = self.cfg.backend.odom_information.deskew_white_scale
         r = self.result
-        if self.odometry.imu or not scale or not covariances or len(r.odom_poses) < 3:
+        if r.inertial_summary.get("imu", {}).get("factors"):
+            r.deskew_white = None
+            return covariances
+        r.deskew_white = (0, 0.0)
+        if not scale or not covariances or len(r.odom_poses) < 3:
             return covariances
         frames = np.asarray(r.indices)
         kfs = sorted(covariances)
@@ -513,7 +522,6 @@ class Pipeline:
         if out.T_S_world is None:  # the GNSS could not place the run, and no IMU
             return
         r.kf_poses, r.kf_covariances = out.kf_poses, out.covariances
-        r.deskew_white = (0, 0.0)  # the lidar graph's covariances, replaced
         r.frame_poses = out.frame_poses
         # the output map frame: frame 0 at its stamp (lidar_slam.run.outputs anchors there)
         kf0 = r.frame_kf[0]

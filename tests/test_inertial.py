@@ -329,6 +329,8 @@ def test_run_reports_the_imu_and_gnss_it_read_in_summary_json(tmp_path):
     # read (samples, rate), but three scans are too short for either end to use it: said so
     assert summary["imu"]["used"] is False and "need 1.0 s" in summary["imu"]["reason"]
     assert summary["imu"]["samples"] == n
+    # no IMU factor in the final solve: the deskew's white term is in the covariances
+    assert summary["covariance_deskew_white"] is not None
     assert summary["imu"]["rate_hz"] == pytest.approx(200, rel=1e-3)
     assert summary["gnss"]["source"] == str(data / "gnss.csv")
     # three scans span 3 fixes, fewer than the alignment needs: read, not used, and said why

@@ -23,7 +23,13 @@ lidar graph is not what they are: such runs are refused. For them, --captures ta
 captures of tools/solve_replay.py (the solve's inputs, one per bank sequence), solves each again
 with its joint covariance (imu_gnss_solve.solve(joint=True): every keyframe pose relative to the
 first, as covariances.csv) and prints the same; the run's own NEES is the bank JSON's first draw
-of `lidar-slam` (the captures are of that draw).
+of `lidar-slam` (the captures are of that draw; the JSON's commit is printed: one from before
+832f4ec scored NEES against covariances that were not relative to the first keyframe).
+
+What the spread leaves out, so that it is if anything narrower than a consistent run's: the
+a posteriori variance factor is taken as known (it is max(1, chi2 / dof) of the same residuals;
+1.00 on every lidar-only bank row), and each keyframe's deskew term is drawn independently of
+its neighbours' (one flick reaches the keyframes of three scans).
 """
 
 from __future__ import annotations
@@ -138,15 +144,17 @@ def _row(label: str, n: np.ndarray, keyframes: int, factor: str, own: float | No
 
 
 def observed(bank_json: dict, run: Path) -> float | None:
-    """The run's own mean NEES from a tools/bank.py JSON (its sequence, system and draw)."""
-    system, name = run.name, run.parent.name
-    draw = int(run.parent.parent.name.split("-")[1]) if run.parent.parent.name.startswith(
-        "perturb-") else 0
+    """The run's own mean NEES from a tools/bank.py JSON (its sequence, system and draw: a
+    run under perturb-N/ is the JSON's perturbed[N-1]); None where the JSON has no such cell."""
+    system, name, parent = run.name, run.parent.name, run.parent.parent.name
+    tail = parent.removeprefix("perturb-")
+    draw = int(tail) if parent != tail and tail.isdigit() else 0
     cell = bank_json.get("results", {}).get(name, {}).get(system)
     if cell is None:
         return None
     if draw:
-        cell = (cell.get("perturbed") or [None] * draw)[draw - 1] or {}
+        perturbed = cell.get("perturbed") or []
+        cell = perturbed[draw - 1] if draw <= len(perturbed) and perturbed[draw - 1] else {}
     return cell.get("nees_mean")
 
 
@@ -159,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default="", help="with --captures: these sequences (a,b,...)")
     args = ap.parse_args(argv)
     bank_json = json.loads(args.bank_json.read_text()) if args.bank_json else {}
+    if bank_json:
+        print(f"the runs' own NEES: {args.bank_json} (commit {bank_json.get('commit', '?')})")
     print("run | keyframes | variance factor | mean NEES if consistent: 5 / 50 / 95 % | "
           "P(< 1) | P(> 9) | the run's | its quantile")
     only = {n for n in args.only.split(",") if n}

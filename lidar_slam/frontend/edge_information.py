@@ -101,13 +101,16 @@ def deskew_white(odom_poses: np.ndarray, kf_positions: dict[int, int],
                  ) -> dict[int, float]:
     """The variance (m^2, per axis) of each keyframe's position error that a deskew at constant
     velocity leaves and no lidar constraint can see: (scale x miss x range)^2, miss the largest
-    rotation (rad) by which a registered scan missed the constant-velocity prediction it was
-    deskewed with, over the keyframe's scan and the `window` before it, and range the keyframe
+    rotation (rad) by which a scan's pose missed the constant-velocity prediction from the two
+    before it, over the keyframe's scan and the `window` before it, and range the keyframe
     cloud's median range (m). Through a hand-held flick the sweep is deskewed along a motion it
     did not have; its cloud, and the pose fitted to it, are then a few decimetres off for the
-    next scans while every registration of that cloud agrees with it (docs/bank.md, "A
-    keyframe's deskew error"). odom_poses: (K, 4, 4) every registered scan in order;
-    kf_positions: {keyframe: its scan's position in odom_poses}; kf_ranges: {keyframe: m}."""
+    next scans while every registration of that cloud agrees with it (docs/bank.md, Decisions,
+    "a keyframe's covariance carries its deskew's white error"). odom_poses: (K, 4, 4) the
+    run's odometry poses at the scans' stamps, in order (odometry_kitti.txt: with per-point
+    times each lies between two registrations, so a flick's miss shows there about halved and
+    over two scans; the bank's scale was set on these poses); kf_positions: {keyframe: its
+    scan's position in odom_poses}; kf_ranges: {keyframe: m}."""
     T = np.asarray(odom_poses, dtype=float)
     miss = np.zeros(len(T))
     if len(T) >= 3:

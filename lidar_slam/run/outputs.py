@@ -241,10 +241,12 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["odometry_coarse_scans"] = result.coarse_scans
     summary["odometry_second_start"] = {"tried": result.second_start[0],
                                         "taken": result.second_start[1]}
-    # lidar only: keyframes whose covariance the deskew's white sd widened by 1 cm or more, the
-    # largest (backend.odom_information.deskew_white_scale)
-    summary["covariance_deskew_white"] = {"keyframes_1cm": result.deskew_white[0],
-                                          "max_m": result.deskew_white[1]}
+    # without IMU factors in the final solve: keyframes whose covariance the deskew's white sd
+    # widened by 1 cm or more, the largest (backend.odom_information.deskew_white_scale); null
+    # with them (not added)
+    summary["covariance_deskew_white"] = (
+        None if result.deskew_white is None else
+        {"keyframes_1cm": result.deskew_white[0], "max_m": result.deskew_white[1]})
     # episodes of failed odometry (lidar_slam.frontend.failure), the scans they started at, and
     # the scans of every local-map reset
     summary["odometry_failures"] = len(result.failure_episodes)
