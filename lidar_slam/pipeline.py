@@ -68,6 +68,9 @@ class RunResult:
     # gate, by the held-out points' evidence after the ICP, and before it (see odometry)
     refined_scans: tuple[int, int, int, int] = (0, 0, 0, 0)
     refined_at_speed: int = 0  # of refined_scans[0]: for a lasting speed (lidar only)
+    # the covariances' rotation floor and bias from those scans' corrections
+    # (Pipeline._with_refinement_floor), None when the covariances do not take them
+    refinement_floor: dict | None = None
     coarse_scans: int = 0  # registrations that started from a coarse pass (lidar only)
     # scans from constant velocity that also started from the last pose (odometry.
     # second_start_deg), and of them those it kept
@@ -442,7 +445,8 @@ class Pipeline:
                     self._add_node(kf_id, None if self.edge_information is None
                                    else self.edge_information.stored(r.store, kf_id))
             r.kf_poses = self.backend.finish()
-            r.kf_covariances = self.backend.covariances
+            r.kf_covariances = lidar_covariances = self.backend.covariances
+            lidar_graph = self.backend.graph
             r.loop_update_s = self.backend.loop_update_s
             r.loop_backend, r.backend_init = self.backend.loop_status, self.backend.final_init
             if use_inertial and r.kf_poses:
@@ -457,13 +461,53 @@ class Pipeline:
                 r.seconds["loop_worker_urgent"] = self.loops.urgent_s
                 r.seconds["loops"] += time.perf_counter() - t0
         else:
-            from lidar_slam.backend.slam_backend import chain_covariances
+            from lidar_slam.backend.slam_backend import chain_graph
 
             r.kf_poses = self.current_kf_poses()
-            r.kf_covariances = chain_covariances(self.cfg.backend, r.kf_poses,
-                                                 r.odom_information)
+            lidar_graph = (chain_graph(self.cfg.backend, r.kf_poses, r.odom_information)
+                           if r.kf_poses else None)
+            r.kf_covariances = lidar_covariances = (lidar_graph.covariances() if lidar_graph
+                                                    else {})
+        r.refinement_floor = None
+        if r.kf_covariances and r.kf_covariances is lidar_covariances:  # not the IMU / GNSS solve's
+            r.kf_covariances = self._with_refinement_floor(lidar_graph, r.kf_covariances)
         r.kf_covariances = self._with_deskew_white(r.kf_covariances)
         return r
+
+    def _with_refinement_floor(self, graph, covariances: dict[int, np.ndarray]
+                               ) -> dict[int, np.ndarray]:
+        """The lidar graph's covariances again with the rotation floor and bias the run's
+        refinement at speed measured (backend.refinement_floor), when it refined at least
+        backend.odom_information.floor_from_refinement_scans scans at speed; else as they are.
+        summary.json says which (covariance_refinement_floor)."""
+        from lidar_slam.backend.refinement_floor import RefinementFloor, refloored
+
+        cfg, o, r = self.cfg.backend, self.odometry, self.result
+        oi = cfg.odom_information
+        if oi.floor_from_refinement_scans is None or (
+                o.n_refined_at_speed < max(1, oi.floor_from_refinement_scans)):
+            return covariances
+        floor = RefinementFloor.from_sums(o.n_refined_at_speed, o.speed_correction_sum,
+                                          o.speed_correction_sq)
+        frames = np.asarray(r.indices)
+        keys = sorted(covariances)
+        at = {k: int(np.searchsorted(frames, r.store.frame_index(k))) for k in keys}
+        scans = {k: at[k] - at[p] for p, k in zip(keys[:-1], keys[1:], strict=True)}
+        try:
+            out = refloored(graph.priors, graph.covariance_edges(cfg.robust, cfg.huber_k),
+                            graph.estimate, set(r.odom_information), scans,
+                            np.radians(oi.min_rot_sigma_deg), floor, oi.refinement_bias_fraction)
+        except RuntimeError as exc:  # gtsam: an indeterminate system (covariances had none)
+            log.warning("covariances kept at the configured rotation floor (gtsam: %s)",
+                        str(exc).strip().splitlines()[0])
+            return covariances
+        r.refinement_floor = {
+            "scans": floor.scans, "floor_deg": float(np.degrees(floor.floor_rad())),
+            "rms_deg": np.degrees(floor.rms_rad).tolist(),
+            "mean_deg": np.degrees(floor.mean_rad).tolist(),
+            "bias_sd_deg": np.degrees(np.abs(oi.refinement_bias_fraction
+                                             * floor.mean_rad)).tolist()}
+        return {k: out.get(k, c) for k, c in covariances.items()}
 
     def _with_deskew_white(self, covariances: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """The final keyframe covariances with the position error a constant-velocity deskew

@@ -238,3 +238,30 @@ def test_a_lidar_only_run_adds_each_keyframes_deskew_error_and_moves_no_pose(tmp
     assert summary["max_m"] == pytest.approx(sd.max(), rel=1e-3)
     assert json.loads((b / "summary.json").read_text())["covariance_deskew_white"] == \
         {"keyframes_1cm": 0, "max_m": 0.0}
+
+
+def test_a_drive_takes_its_rotation_floor_from_its_refinement_and_moves_no_pose(tmp_path):
+    """backend.odom_information.floor_from_refinement_scans (backend.refinement_floor): the
+    sample drive refines 47 scans at speed, so its covariances take the largest per-axis rms of
+    their rotation corrections as the odometry edges' floor (0.18 deg here, looser than the
+    configured 0.1) and a tenth of their mean as a bias; summary.json says what was taken. The
+    poses are the solve's either way, and a config that turns it off gives the old
+    covariances."""
+    off = tmp_path / "off.yaml"
+    off.write_text("backend:\n  odom_information:\n    floor_from_refinement_scans: null\n")
+    a = _run(SAMPLE, tmp_path / "on")
+    b = _run(SAMPLE, tmp_path / "off", "--config", str(off))
+    assert (a / "poses_kitti.txt").read_bytes() == (b / "poses_kitti.txt").read_bytes()
+    sa, sb = (json.loads((r / "summary.json").read_text()) for r in (a, b))
+    floor = sa["covariance_refinement_floor"]
+    assert sb["covariance_refinement_floor"] is None
+    assert floor["scans"] == sa["odometry_refined_at_speed"] >= 30
+    assert floor["floor_deg"] == pytest.approx(max(floor["rms_deg"]))
+    assert 0.1 < floor["floor_deg"] < 1.0
+    np.testing.assert_allclose(floor["bias_sd_deg"], 0.1 * np.abs(floor["mean_deg"]))
+    ca, cb = read_covariances(a / "covariances.csv"), read_covariances(b / "covariances.csv")
+    assert ca.keys() == cb.keys()
+    last = max(ca)
+    assert ca[last][2, 2] > cb[last][2, 2]  # the looser floor: yaw less sure at the end
+    first = min(ca)
+    np.testing.assert_allclose(ca[first], cb[first], rtol=1e-6, atol=1e-12)  # the anchor

@@ -148,6 +148,16 @@ def marginal_covariances(dims: Dims, priors: Sequence[PriorFactor],
             for k in values.keys()}
 
 
+def linear_step(dims: Dims, priors: Sequence[PriorFactor], betweens: Sequence[BetweenFactor],
+                poses: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """The Gauss-Newton step of the graph linearised at the poses (gtsam's sparse elimination;
+    robust edges with their kernel's weight there): each node's tangent vector (Pose3: rotation
+    first, in the node's frame)."""
+    graph, values = _build(dims, priors, betweens, poses)
+    delta = graph.linearize(values).optimize()
+    return {int(k): np.asarray(delta.at(k), dtype=np.float64) for k in values.keys()}
+
+
 def inlier_thresholds(dims: Dims, n: int) -> np.ndarray:
     """GNC's inlier cost threshold for n between factors: 0.5 * chi2inv(INLIER_PROBABILITY, dof)."""
     return np.full(n, 0.5 * CHI2_99[3 if dims == 2 else 6])

@@ -266,11 +266,19 @@ class PoseGraph:
         self._check_keys()
         from lidar_slam.backend import gtsam_graph
 
+        return gtsam_graph.marginal_covariances(self.dims, self.priors,
+                                                self.covariance_edges(robust, huber_k),
+                                                self._estimate)
+
+    def covariance_edges(self, robust: Robust = "none", huber_k: float = 1.345
+                         ) -> list[BetweenFactor]:
+        """The edges covariances() weighs: the odometry, and the loops the last solve kept with
+        the loop kernel of `robust`."""
         edges = self._edges_for(robust, huber_k)
         keep = self.summary.inlier if self.summary is not None else None
         if keep is not None and len(keep) == len(edges):
             edges = [e for e, k in zip(edges, keep, strict=True) if k or not e.is_loop]
-        return gtsam_graph.marginal_covariances(self.dims, self.priors, edges, self._estimate)
+        return edges
 
     def _known_chain(self, edges: list[BetweenFactor], known: np.ndarray
                      ) -> dict[int, np.ndarray]:

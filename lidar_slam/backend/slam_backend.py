@@ -218,38 +218,48 @@ class Backend:
         self.seconds["covariances"] = time.perf_counter() - t0
 
     def _variance_factor(self) -> float:
-        """The final solve's a posteriori variance factor, at least 1: the kept edges' summed
-        squared whitened residuals over the graph's redundancy (6 per kept loop; a chain has
-        none and says nothing). Where the loops show more drift than the edges' information
-        allows (an odometry error the clouds cannot see: deskew, calibration), the covariances
-        grow by it; the poses do not change."""
-        from lidar_slam.backend import gtsam_graph
-
+        """The final solve's a posteriori variance factor (variance_factor) over the kept edges:
+        where the loops show more drift than the edges' information allows (an odometry error
+        the clouds cannot see: deskew, calibration), the covariances grow by it; the poses do
+        not change."""
         kept = [e for e in self.graph.edges
                 if not e.is_loop or self.loop_status.get((e.i, e.j)) == "inlier"]
-        n_loops = sum(e.is_loop for e in kept)
-        if not n_loops:
-            return 1.0
-        poses = self.graph.estimate
-        chi2 = 0.0
-        for e in kept:
-            err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
-            chi2 += float(err @ e.information @ err)
-        factor = max(1.0, chi2 / (6 * n_loops))
-        log.info("covariances: a posteriori variance factor %.2f (chi2 %.1f, %d loops)",
-                 chi2 / (6 * n_loops), chi2, n_loops)
-        return factor
+        return variance_factor(kept, self.graph.estimate)
+
+
+def variance_factor(kept: list, poses: dict[int, np.ndarray]) -> float:
+    """A posteriori variance factor, at least 1: the kept edges' summed squared whitened
+    residuals at the poses over the graph's redundancy (6 per kept loop; a chain has none and
+    says nothing, 1)."""
+    from lidar_slam.backend import gtsam_graph
+
+    n_loops = sum(e.is_loop for e in kept)
+    if not n_loops:
+        return 1.0
+    chi2 = 0.0
+    for e in kept:
+        err = gtsam_graph.between_error(e.T_i_j, poses[e.i], poses[e.j])
+        chi2 += float(err @ e.information @ err)
+    log.info("covariances: a posteriori variance factor %.2f (chi2 %.1f, %d loops)",
+             chi2 / (6 * n_loops), chi2, n_loops)
+    return max(1.0, chi2 / (6 * n_loops))
 
 
 def chain_covariances(cfg: BackendConfig, T_world_kf: dict[int, np.ndarray],
                       information: dict[int, np.ndarray] | None = None) -> dict[int, np.ndarray]:
     """Marginal covariances (as Backend.covariances) of keyframes joined by odometry alone, as
-    in a run without loops: the first keyframe's prior and one odometry edge per keyframe, with
-    its information (keyed by the edge's second keyframe) where given, else the config's
-    sigmas."""
-    information = information or {}
+    in a run without loops: chain_graph's."""
     if not T_world_kf:
         return {}
+    return chain_graph(cfg, T_world_kf, information).covariances()
+
+
+def chain_graph(cfg: BackendConfig, T_world_kf: dict[int, np.ndarray],
+                information: dict[int, np.ndarray] | None = None) -> PoseGraph:
+    """The first keyframe's prior and one odometry edge per keyframe, with its information
+    (keyed by the edge's second keyframe) where given, else the config's sigmas; the nodes at
+    T_world_kf."""
+    information = information or {}
     graph = PoseGraph()
     keys = sorted(T_world_kf)
     graph.add_prior(keys[0], T_world_kf[keys[0]], cfg.prior_rot_sigma_deg, cfg.prior_trans_sigma_m)
@@ -262,4 +272,4 @@ def chain_covariances(cfg: BackendConfig, T_world_kf: dict[int, np.ndarray],
                                trans_sigma_m=cfg.odom_trans_sigma_m)
     for k in keys:
         graph.set_initial(k, T_world_kf[k])
-    return graph.covariances()
+    return graph

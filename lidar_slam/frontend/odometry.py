@@ -29,6 +29,7 @@ from lidar_slam.geometry import (
     interpolate,
     matrix_from_rotvec,
     rotation_angle_deg,
+    rotvec_from_matrix,
     transform_points,
 )
 from lidar_slam.registration import PlaneTarget, orthonormal, voxel_centroids
@@ -255,6 +256,12 @@ class Odometry:
         self.n_refined = 0
         self._fast_s = 0.0  # registered time at or above refine_below_mps, in a row (s)
         self.n_refined_at_speed = 0  # of n_refined: for their lasting speed
+        # Of those scans' corrections (the refinement's pose in kiss-icp's pose's frame): the
+        # sums of the rotation vectors and of their squares, per axis (rad, rad^2): how far
+        # kiss-icp's rotation strays from the keyframes, scan by scan, and how much of it is
+        # one way (backend.odom_information.floor_from_refinement)
+        self.speed_correction_sum = np.zeros(3)
+        self.speed_correction_sq = np.zeros(3)
         self.n_refine_refused = 0  # by the correction gate (refine_max_correction_*)
         self.n_refine_unproven = 0  # by the held-out points' evidence, after the ICP
         self.n_refine_skipped = 0  # by the held-out points' evidence, before the ICP
@@ -333,7 +340,11 @@ class Odometry:
                 self.n_refine_unproven += 1
                 return T_world_points
         self.n_refined += 1
-        self.n_refined_at_speed += at_speed
+        if at_speed:
+            self.n_refined_at_speed += 1
+            rv = rotvec_from_matrix(correction[:3, :3])
+            self.speed_correction_sum += rv
+            self.speed_correction_sq += rv * rv
         return T
 
     def _new_threshold(self) -> None:
@@ -516,7 +527,8 @@ class Odometry:
                                       self.n_refined, self.n_refine_refused,
                                       self.n_refine_unproven, self.n_refine_skipped,
                                       self._fast_s, self.n_refined_at_speed, self.n_coarse,
-                                      self.n_second_tried, self.n_second_taken]),
+                                      self.n_second_tried, self.n_second_taken,
+                                      *self.speed_correction_sum, *self.speed_correction_sq]),
                 **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
@@ -537,10 +549,12 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        refined = list(refined) + [0] * (9 - len(refined))  # older: fewer
+        refined = list(refined) + [0] * (15 - len(refined))  # older: fewer
         (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
          self.n_refine_skipped) = (int(v) for v in refined[:4])
         self._fast_s, self.n_refined_at_speed = float(refined[4]), int(refined[5])
         self.n_coarse = int(refined[6])
         self.n_second_tried, self.n_second_taken = int(refined[7]), int(refined[8])
+        self.speed_correction_sum = np.array(refined[9:12], dtype=float)
+        self.speed_correction_sq = np.array(refined[12:15], dtype=float)
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)
