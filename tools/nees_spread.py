@@ -18,13 +18,17 @@ loops the final solve rejected, loops.csv, left out; the kept ones with their Hu
 the final poses; keyframe 0 anchored as the pipeline does), scaled by the run's a posteriori
 variance factor and widened by each keyframe's deskew error as covariances.csv says (the
 rotation blocks give the factor, each position block's excess is that keyframe's own
-independent term). For runs whose covariances came from the solve with the IMU or GNSS the
-lidar graph is not what they are: such runs are refused. For them, --captures takes the
-captures of tools/solve_replay.py (the solve's inputs, one per bank sequence), solves each again
-with its joint covariance (imu_gnss_solve.solve(joint=True): every keyframe pose relative to the
-first, as covariances.csv) and prints the same; the run's own NEES is the bank JSON's first draw
-of `lidar-slam` (the captures are of that draw; the JSON's commit is printed: one from before
-832f4ec scored NEES against covariances that were not relative to the first keyframe).
+independent term). Where the run's covariances took the rotation floor and bias of its
+refinement at speed (summary.json covariance_refinement_floor: backend.refinement_floor), so
+does C: the measured odometry edges (those not at the configured sigmas) get that floor, and
+the bias's sensitivity adds its joint part. For runs whose covariances came from the solve with
+the IMU or GNSS the lidar graph is not what they are: such runs are refused. For them,
+--captures takes the captures of tools/solve_replay.py (the solve's inputs, one per bank
+sequence), solves each again with its joint covariance (imu_gnss_solve.solve(joint=True): every
+keyframe pose relative to the first, as covariances.csv) and prints the same; the run's own
+NEES is the bank JSON's first draw of `lidar-slam` (the captures are of that draw; the JSON's
+commit is printed: one from before 832f4ec scored NEES against covariances that were not
+relative to the first keyframe).
 
 What the spread leaves out, so that it is if anything narrower than a consistent run's: the
 a posteriori variance factor is taken as known (it is max(1, chi2 / dof) of the same residuals;
@@ -80,7 +84,27 @@ def joint_position_covariance(run: Path) -> tuple[np.ndarray, list[np.ndarray], 
     b = cfg.backend
     prior_info = np.diag([np.radians(b.prior_rot_sigma_deg) ** -2] * 3
                          + [b.prior_trans_sigma_m ** -2] * 3)
-    graph = Problem(3, [PriorFactor(keys[0], g.poses[keys[0]], prior_info)], edges).graph
+    priors = [PriorFactor(keys[0], g.poses[keys[0]], prior_info)]
+    frames = [int(f) for f in table["frame_index"][:len(keys)]]
+    summary = json.loads((run / "summary.json").read_text())
+    taken = summary.get("covariance_refinement_floor")
+    bias = np.zeros((6 * len(keys), 0))
+    if taken:  # the covariances' graph: backend.refinement_floor's floor and bias
+        from lidar_slam.backend.factors import sigmas_to_information
+        from lidar_slam.backend.refinement_floor import bias_sensitivity, floored_edges
+
+        configured = sigmas_to_information(b.odom_rot_sigma_deg, b.odom_trans_sigma_m)
+        measured = {e.j for e in edges if not e.is_loop
+                    and not np.allclose(e.information, configured)}
+        edges = floored_edges(edges, measured, np.radians(b.odom_information.min_rot_sigma_deg),
+                              np.radians(taken["floor_deg"]))
+        # scans per edge: frames apart (the run's registered scans; the same where none was
+        # skipped)
+        scans = {k: frames[k] - frames[k - 1] for k in keys[1:]}
+        J = bias_sensitivity(priors, edges, dict(g.poses), scans,
+                             np.radians(np.asarray(taken["bias_sd_deg"])))
+        bias = np.concatenate([J[k] for k in keys])  # (6K, 3): the bias's joint part
+    graph = Problem(3, priors, edges).graph
     values = gtsam.Values()
     for k in keys:
         values.insert(k, gtsam.Pose3(g.poses[k]))
@@ -90,15 +114,15 @@ def joint_position_covariance(run: Path) -> tuple[np.ndarray, list[np.ndarray], 
     H, _ = graph.linearize(values).hessian(order)
     S = np.linalg.inv(H)
     covs = read_covariances(run / "covariances.csv")
-    frames = [int(f) for f in table["frame_index"][:len(keys)]]
-    ratios = [np.trace(covs[frames[i]][:3, :3]) / np.trace(S[6 * i:6 * i + 3, 6 * i:6 * i + 3])
-              for i in range(1, len(keys))]
+    B = bias @ bias.T
+    ratios = [np.trace(covs[frames[i]][:3, :3] - B[6 * i:6 * i + 3, 6 * i:6 * i + 3])
+              / np.trace(S[6 * i:6 * i + 3, 6 * i:6 * i + 3]) for i in range(1, len(keys))]
     factor = float(np.median(ratios))
     if max(ratios) > 1.01 * factor or min(ratios) < 0.99 * factor:
         raise ValueError(f"{run}: graph.g2o does not give covariances.csv's rotations "
                          f"(ratios {min(ratios):.3f}-{max(ratios):.3f})")
     idx = np.concatenate([np.arange(6 * i + 3, 6 * i + 6) for i in range(1, len(keys))])
-    C = factor * S[np.ix_(idx, idx)]
+    C = factor * S[np.ix_(idx, idx)] + B[np.ix_(idx, idx)]
     P = []
     for n, i in enumerate(range(1, len(keys))):
         block = slice(3 * n, 3 * n + 3)

@@ -79,16 +79,17 @@ def floored_edges(edges: list[BetweenFactor], measured: set[int], old_floor_rad:
     return out
 
 
-def bias_covariance(priors: list[PriorFactor], edges: list[BetweenFactor],
-                    poses: dict[int, np.ndarray], scans: dict[int, int],
-                    bias_sd_rad: np.ndarray) -> dict[int, np.ndarray]:
-    """Each node's covariance (6x6, rotation first, its own frame) from a constant rotation bias
-    per scan on every odometry edge, sd bias_sd_rad per axis (independent): the edge into j
-    turns by scans[j] x bias. J per axis is the change of the linearised graph's solution."""
+def bias_sensitivity(priors: list[PriorFactor], edges: list[BetweenFactor],
+                     poses: dict[int, np.ndarray], scans: dict[int, int],
+                     bias_sd_rad: np.ndarray) -> dict[int, np.ndarray]:
+    """Each node's (6, 3) change of the solution (tangent, rotation first, its own frame) for a
+    constant rotation bias per scan of one sd on each axis, on every odometry edge: the edge
+    into j turns by scans[j] x bias. Taken from the linearised graph's solution, which is linear
+    in the edges' measurements there."""
     from lidar_slam.backend import gtsam_graph
 
     base = gtsam_graph.linear_step(3, priors, edges, poses)
-    out = {k: np.zeros((6, 6)) for k in base}
+    out = {k: np.zeros((6, 3)) for k in base}
     for axis in range(3):
         sd = float(bias_sd_rad[axis])
         if sd == 0.0:
@@ -105,9 +106,17 @@ def bias_covariance(priors: list[PriorFactor], edges: list[BetweenFactor],
             turned.append(replace(e, T_i_j=e.T_i_j @ T))
         step = gtsam_graph.linear_step(3, priors, turned, poses)
         for k in out:
-            j = (step[k] - base[k]) / STEP_RAD * sd
-            out[k] += np.outer(j, j)
+            out[k][:, axis] = (step[k] - base[k]) / STEP_RAD * sd
     return out
+
+
+def bias_covariance(priors: list[PriorFactor], edges: list[BetweenFactor],
+                    poses: dict[int, np.ndarray], scans: dict[int, int],
+                    bias_sd_rad: np.ndarray) -> dict[int, np.ndarray]:
+    """Each node's covariance (6x6, rotation first, its own frame) from a constant rotation bias
+    per scan, sd bias_sd_rad per axis (independent): J J^T of bias_sensitivity."""
+    return {k: J @ J.T for k, J in bias_sensitivity(priors, edges, poses, scans,
+                                                     bias_sd_rad).items()}
 
 
 def refloored(priors: list[PriorFactor], edges: list[BetweenFactor],
