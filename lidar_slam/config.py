@@ -299,12 +299,14 @@ class OdometryInformationConfig(_Section):
     # Lidar only: where at least this many scans were refined at speed (odometry.
     # refine_keyframes_at_speed: a drive), the covariances are of the same graph with the
     # rotation floor taken from the run's own data instead of min_rot_sigma_deg: the largest
-    # per-axis rms of those scans' rotation corrections, and a constant rotation bias per scan
-    # of refinement_bias_fraction x their mean, per axis, as a consider parameter
-    # (backend.refinement_floor). The poses are the solve's with min_rot_sigma_deg. None: off.
-    # Set on the bank's car rows (docs/bank.md, Decisions).
+    # per-axis rms of those scans' rotation corrections (at least refinement_floor_min_deg, a
+    # bound for runs whose corrections are all but zero), and a constant rotation bias per
+    # metre of refinement_bias_fraction x their mean over their mean motion, per axis, as a
+    # consider parameter (backend.refinement_floor). The poses are the solve's with
+    # min_rot_sigma_deg. None: off. Set on the bank's car rows (docs/bank.md, Decisions).
     floor_from_refinement_scans: Count | None = 30
     refinement_bias_fraction: NonNegative = 0.1
+    refinement_floor_min_deg: NonNegative = 0.02
 
 
 class BackendConfig(_Section):

@@ -45,6 +45,8 @@ class RunResult:
     # keyframe id -> information of the odometry edge from the previous keyframe (its own data:
     # lidar_slam.frontend.edge_information), where it could be had
     odom_information: dict[int, np.ndarray] = field(default_factory=dict)
+    # keyframes whose odometry edge's information is its clouds' (not the configured sigmas)
+    odom_measured: set[int] = field(default_factory=set)
     # keyframe id -> unit vector against gravity in the keyframe's frame (the IMU's), with an IMU
     kf_up: dict[int, np.ndarray] = field(default_factory=dict)
     # keyframe id -> the node's instant minus its frame's stamp (s), for nodes not at the stamp
@@ -346,6 +348,8 @@ class Pipeline:
         """The edge information into kf_id as the clouds give it (raw; None: the configured
         sigmas), widened across an odometry failure, kept in the result."""
         info, store = raw, self.result.store
+        if raw is not None:  # its own information, with the configured floors
+            self.result.odom_measured.add(kf_id)
         if kf_id > 0:
             sigma = self.odometry.failures.sigma_between(store.frame_index(kf_id - 1),
                                                          store.frame_index(kf_id))
@@ -477,36 +481,36 @@ class Pipeline:
     def _with_refinement_floor(self, graph, covariances: dict[int, np.ndarray]
                                ) -> dict[int, np.ndarray]:
         """The lidar graph's covariances again with the rotation floor and bias the run's
-        refinement at speed measured (backend.refinement_floor), when it refined at least
-        backend.odom_information.floor_from_refinement_scans scans at speed; else as they are.
-        summary.json says which (covariance_refinement_floor)."""
+        refinement at speed measured (backend.refinement_floor), when it made at least
+        backend.odom_information.floor_from_refinement_scans corrections at speed and the edges
+        carry their own information; else as they are. summary.json says which
+        (covariance_refinement_floor)."""
         from lidar_slam.backend.refinement_floor import RefinementFloor, refloored
 
         cfg, o, r = self.cfg.backend, self.odometry, self.result
         oi = cfg.odom_information
-        if oi.floor_from_refinement_scans is None or (
-                o.n_refined_at_speed < max(1, oi.floor_from_refinement_scans)):
+        if (not oi.enabled or oi.floor_from_refinement_scans is None
+                or o.speed_corrections < max(1, oi.floor_from_refinement_scans)):
             return covariances
-        floor = RefinementFloor.from_sums(o.n_refined_at_speed, o.speed_correction_sum,
-                                          o.speed_correction_sq)
-        frames = np.asarray(r.indices)
-        keys = sorted(covariances)
-        at = {k: int(np.searchsorted(frames, r.store.frame_index(k))) for k in keys}
-        scans = {k: at[k] - at[p] for p, k in zip(keys[:-1], keys[1:], strict=True)}
+        t0 = time.perf_counter()
+        floor = RefinementFloor.from_sums(o.speed_corrections, o.speed_correction_sum,
+                                          o.speed_correction_sq, o.speed_correction_m)
+        floor_rad = floor.floor_rad(np.radians(oi.refinement_floor_min_deg))
+        bias = floor.bias_per_m(oi.refinement_bias_fraction)
         try:
-            out = refloored(graph.priors, graph.covariance_edges(cfg.robust, cfg.huber_k),
-                            graph.estimate, set(r.odom_information), scans,
-                            np.radians(oi.min_rot_sigma_deg), floor, oi.refinement_bias_fraction)
+            out, factor = refloored(graph.priors, graph.covariance_edges(cfg.robust, cfg.huber_k),
+                                    graph.estimate, r.odom_measured,
+                                    np.radians(oi.min_rot_sigma_deg), floor_rad, bias)
         except RuntimeError as exc:  # gtsam: an indeterminate system (covariances had none)
             log.warning("covariances kept at the configured rotation floor (gtsam: %s)",
                         str(exc).strip().splitlines()[0])
             return covariances
         r.refinement_floor = {
-            "scans": floor.scans, "floor_deg": float(np.degrees(floor.floor_rad())),
+            "seconds": time.perf_counter() - t0,
+            "scans": floor.scans, "floor_deg": float(np.degrees(floor_rad)),
             "rms_deg": np.degrees(floor.rms_rad).tolist(),
-            "mean_deg": np.degrees(floor.mean_rad).tolist(),
-            "bias_sd_deg": np.degrees(np.abs(oi.refinement_bias_fraction
-                                             * floor.mean_rad)).tolist()}
+            "mean_deg": np.degrees(floor.mean_rad).tolist(), "step_m": floor.step_m,
+            "bias_sd_deg_per_m": np.degrees(bias).tolist(), "variance_factor": factor}
         return {k: out.get(k, c) for k, c in covariances.items()}
 
     def _with_deskew_white(self, covariances: dict[int, np.ndarray]) -> dict[int, np.ndarray]:

@@ -284,7 +284,9 @@ def test_a_scan_refined_at_speed_matches_more_keyframes_than_a_slow_one(monkeypa
 def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
     """A checkpoint taken at a keyframe while a car is refined at speed, against more keyframes
     than a slow scan would be (refine_keyframes_at_speed): the resumed run gets the same
-    anchors back and every later pose within 1e-9."""
+    anchors back and every later pose within 1e-9, and the same corrections' statistics for
+    the covariances' floor (backend.refinement_floor). A checkpoint from before those were
+    kept with their count starts them again rather than divide old counts into new sums."""
     from lidar_slam.sim import load_kitti_truth, simulate_sequence
 
     kt = load_kitti_truth(kitti_gt, 7)
@@ -292,9 +294,13 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
                       n_scans=40, Tr_cam_lidar=kt.Tr_cam_lidar)
     cfg = load_config(overrides={"loop": {"enabled": False},
                                  "odometry": {"max_num_threads": 1, "refine_keyframes": 2,
-                                              "refine_keyframes_at_speed": 5}})
+                                              "refine_keyframes_at_speed": 5},
+                                 "backend": {"odom_information": {
+                                     "floor_from_refinement_scans": 1}}})
     scans = list(open_source(tmp_path / "seq").scans())
-    P_full = _run_whole(cfg, scans, tmp_path / "full").final_poses()
+    full = _run_whole(cfg, scans, tmp_path / "full")
+    P_full = full.final_poses()
+    assert full.refinement_floor is not None
 
     run = tmp_path / "cut"
     first, k = _cut_at_a_keyframe(cfg, scans, run,
@@ -310,6 +316,24 @@ def test_resume_rebuilds_the_refinement_at_speed_exactly(kitti_gt, tmp_path):
     res = _resume_to_the_end(cfg, scans, run, k, check=same_anchors)
     assert res.refined_at_speed > at_speed_before  # refined at speed after the resume too
     np.testing.assert_allclose(res.final_poses(), P_full, rtol=0, atol=1e-9)
+    for key, value in full.refinement_floor.items():
+        if key != "seconds":
+            np.testing.assert_allclose(res.refinement_floor[key], value, rtol=1e-9)
+
+    # an older checkpoint: the counters before the corrections' count (15 of them, or fewer)
+    from lidar_slam.frontend.odometry import Odometry
+
+    odo = Odometry(cfg)
+    state = first.odometry.state()
+    assert first.odometry.speed_corrections > 0
+    odo.restore(state, np.zeros((0, 4, 4)))
+    assert odo.speed_corrections == first.odometry.speed_corrections
+    np.testing.assert_array_equal(odo.speed_correction_sq, first.odometry.speed_correction_sq)
+    state["counters"] = state["counters"][:18]  # 3 + 15: the sums without their count
+    odo.restore(state, np.zeros((0, 4, 4)))
+    assert odo.speed_corrections == 0 and odo.speed_correction_m == 0.0
+    assert not odo.speed_correction_sum.any() and not odo.speed_correction_sq.any()
+    assert odo.n_refined_at_speed == first.odometry.n_refined_at_speed
 
 
 def _similarity_scale(est: np.ndarray, truth: np.ndarray) -> float:

@@ -9,6 +9,7 @@ from lidar_slam.backend.factors import BetweenFactor, PriorFactor
 from lidar_slam.backend.refinement_floor import (
     RefinementFloor,
     bias_covariance,
+    edge_lengths,
     floored_edges,
     refloored,
 )
@@ -28,12 +29,17 @@ def _chain(n: int, length: float, info: np.ndarray):
     return poses, priors, edges
 
 
-def test_the_floor_is_the_largest_axis_rms_of_the_corrections():
-    f = RefinementFloor.from_sums(4, np.array([0.4, -0.2, 0.0]), np.array([0.04, 0.16, 0.01]))
-    assert f.scans == 4
+def test_the_floor_is_the_largest_axis_rms_and_the_bias_its_mean_per_metre():
+    f = RefinementFloor.from_sums(4, np.array([0.4, -0.2, 0.0]), np.array([0.04, 0.16, 0.01]),
+                                  8.0)
+    assert f.scans == 4 and f.step_m == pytest.approx(2.0)
     np.testing.assert_allclose(f.mean_rad, [0.1, -0.05, 0.0])
     np.testing.assert_allclose(f.rms_rad, [0.1, 0.2, 0.05])
     assert f.floor_rad() == pytest.approx(0.2)
+    assert f.floor_rad(0.3) == pytest.approx(0.3)  # the configured lower bound
+    np.testing.assert_allclose(f.bias_per_m(0.1), [0.005, 0.0025, 0.0])
+    still = RefinementFloor.from_sums(4, np.ones(3), np.ones(3), 0.0)
+    np.testing.assert_array_equal(still.bias_per_m(0.1), 0.0)  # no motion: no bias
 
 
 def test_only_measured_odometry_edges_have_their_rotation_floor_swapped():
@@ -57,15 +63,16 @@ def test_only_measured_odometry_edges_have_their_rotation_floor_swapped():
 
 
 def test_a_constant_yaw_bias_bends_a_straight_chain_as_its_sum_says():
-    """Every edge of a straight drive turned by b about z: node k turns by k b and lies
-    b L k (k - 1) / 2 to the left in its own frame; with sd s per scan and 2 scans per edge the
-    covariance is s^2 (2 J)(2 J)^T with J = (0, 0, k, 0, L k (k-1) / 2, 0)."""
+    """Every edge of a straight drive of edges L long turned by b L about z (b per metre):
+    node k turns by k b L and lies b L^2 k (k - 1) / 2 to the left in its own frame; with sd s
+    the covariance is s^2 J J^T with J = L (0, 0, k, 0, L k (k-1) / 2, 0)."""
     n, length, s = 8, 3.0, np.radians(0.01)
     poses, priors, edges = _chain(n, length, np.diag([1e4] * 6))
-    covs = bias_covariance(priors, edges, poses, {k: 2 for k in range(1, n)},
-                           np.array([0.0, 0.0, s]))
+    lengths = edge_lengths(edges)
+    assert lengths == {k: pytest.approx(length) for k in range(1, n)}
+    covs = bias_covariance(priors, edges, poses, lengths, np.array([0.0, 0.0, s]))
     for k in range(n):
-        J = 2 * np.array([0.0, 0.0, k, 0.0, length * k * (k - 1) / 2, 0.0])
+        J = length * np.array([0.0, 0.0, k, 0.0, length * k * (k - 1) / 2, 0.0])
         np.testing.assert_allclose(covs[k], s ** 2 * np.outer(J, J), rtol=1e-4,
                                    atol=1e-6 * s ** 2)
 
@@ -76,19 +83,17 @@ def test_a_loop_holds_the_bias_back_and_the_same_floor_changes_nothing():
     n, length = 6, 2.0
     info = np.linalg.inv(np.diag([np.radians(0.1) ** 2] * 3 + [0.01 ** 2] * 3))
     poses, priors, edges = _chain(n, length, info)
-    floor = RefinementFloor(100, np.array([0.0, 0.0, np.radians(0.01)]),
-                            np.array([np.radians(0.05)] * 3))
-    same = RefinementFloor(100, np.zeros(3), np.array([np.radians(0.1)] * 3))
+    old, new, bias = np.radians(0.1), np.radians(0.05), np.array([0.0, 0.0, np.radians(0.005)])
     measured = set(range(1, n))
-    plain = refloored(priors, edges, poses, measured, {}, np.radians(0.1), same, 0.0)
+    plain, factor = refloored(priors, edges, poses, measured, old, old, np.zeros(3))
+    assert factor == 1.0  # a chain says nothing about its weights
     marg = gtsam_graph.marginal_covariances(3, priors, edges, poses)
     for k in range(n):
         np.testing.assert_allclose(plain[k], marg[k], rtol=1e-9, atol=1e-15)
-    scans = {k: 1 for k in range(1, n)}
-    chain = refloored(priors, edges, poses, measured, scans, np.radians(0.1), floor, 1.0)
+    chain, _ = refloored(priors, edges, poses, measured, old, new, bias)
     loop = BetweenFactor(0, n - 1, _step((n - 1) * length), info, is_loop=True)
-    closed = refloored(priors, edges + [loop], poses, measured, scans, np.radians(0.1), floor,
-                       1.0)
+    closed, factor = refloored(priors, edges + [loop], poses, measured, old, new, bias)
+    assert factor == 1.0  # the loop agrees with the chain exactly
     assert closed[n - 1][4, 4] < 0.5 * chain[n - 1][4, 4]
     # the smaller floor tightens a chain's end
     assert chain[n - 1][2, 2] < marg[n - 1][2, 2]

@@ -91,18 +91,21 @@ def joint_position_covariance(run: Path) -> tuple[np.ndarray, list[np.ndarray], 
     bias = np.zeros((6 * len(keys), 0))
     if taken:  # the covariances' graph: backend.refinement_floor's floor and bias
         from lidar_slam.backend.factors import sigmas_to_information
-        from lidar_slam.backend.refinement_floor import bias_sensitivity, floored_edges
+        from lidar_slam.backend.refinement_floor import (
+            bias_sensitivity,
+            edge_lengths,
+            floored_edges,
+        )
 
+        # the measured edges: those not at the configured sigmas (an edge of configured sigmas
+        # widened across an odometry failure is taken as measured here, not in the run)
         configured = sigmas_to_information(b.odom_rot_sigma_deg, b.odom_trans_sigma_m)
         measured = {e.j for e in edges if not e.is_loop
                     and not np.allclose(e.information, configured)}
         edges = floored_edges(edges, measured, np.radians(b.odom_information.min_rot_sigma_deg),
                               np.radians(taken["floor_deg"]))
-        # scans per edge: frames apart (the run's registered scans; the same where none was
-        # skipped)
-        scans = {k: frames[k] - frames[k - 1] for k in keys[1:]}
-        J = bias_sensitivity(priors, edges, dict(g.poses), scans,
-                             np.radians(np.asarray(taken["bias_sd_deg"])))
+        J = bias_sensitivity(priors, edges, dict(g.poses), edge_lengths(edges),
+                             np.radians(np.asarray(taken["bias_sd_deg_per_m"])))
         bias = np.concatenate([J[k] for k in keys])  # (6K, 3): the bias's joint part
     graph = Problem(3, priors, edges).graph
     values = gtsam.Values()

@@ -16,12 +16,14 @@ are computed again from the final graph (its poses, loops and kernels as solved)
 
 - each measured odometry edge's rotation floor swapped for sigma = the largest per-axis rms of
   the corrections, on every axis (the yaw corrections of a car are small even where its yaw
-  error is not: the keyframes share it);
-- a constant rotation bias per scan of `refinement_bias_fraction` x their mean, per axis, as a
-  consider parameter: each edge turns by (its scans) x bias, the solution's sensitivity to it
-  comes from the linearised graph (two sparse solves per axis), and each node's covariance gains
-  J diag(sd^2) J^T. The fraction is what the refinement leaves of the bias it corrects (on the
-  bank's most biased drive, car05-vlp16, 3.0 of 29 deg of pitch);
+  error is not: the keyframes share it), at least `refinement_floor_min_deg`;
+- a constant rotation bias of `refinement_bias_fraction` x their mean, per axis and per metre
+  driven (the mean over the mean motion of those scans: a car standing still does not turn),
+  as a consider parameter: each odometry edge turns by its length x bias, the solution's
+  sensitivity to it comes from the linearised graph (one sparse solve per axis, and one at the
+  poses themselves), and each node's covariance gains J diag(sd^2) J^T. The fraction is what
+  the refinement leaves of the bias it corrects (on the bank's most biased drive,
+  car05-vlp16, about 3 of 24-29 deg of pitch);
 - the a posteriori variance factor of the new weights (at least 1, from the kept loops).
 
 The poses stay the solve's (with min_rot_sigma_deg): this changes what the run says about them.
@@ -41,21 +43,32 @@ STEP_RAD = 1e-6  # the bias per scan by which the sensitivity is taken (the grap
 
 @dataclass(frozen=True)
 class RefinementFloor:
-    """What the run's refinement at speed measured: scans, and per axis the mean and rms of the
-    rotation corrections (rad, rotation vectors in the scan's frame)."""
+    """What the run's refinement at speed measured: corrections, per axis the mean and rms of
+    their rotations (rad, rotation vectors in the scan's frame), and the scans' mean motion
+    (m)."""
 
     scans: int
     mean_rad: np.ndarray
     rms_rad: np.ndarray
+    step_m: float
 
     @classmethod
-    def from_sums(cls, n: int, total: np.ndarray, squares: np.ndarray) -> RefinementFloor:
+    def from_sums(cls, n: int, total: np.ndarray, squares: np.ndarray, metres: float
+                  ) -> RefinementFloor:
         n = int(n)
         d = max(n, 1)
-        return cls(n, np.asarray(total, float) / d, np.sqrt(np.asarray(squares, float) / d))
+        return cls(n, np.asarray(total, float) / d, np.sqrt(np.asarray(squares, float) / d),
+                   float(metres) / d)
 
-    def floor_rad(self) -> float:
-        return float(self.rms_rad.max())
+    def floor_rad(self, min_rad: float = 0.0) -> float:
+        return max(float(self.rms_rad.max()), min_rad)
+
+    def bias_per_m(self, fraction: float) -> np.ndarray:
+        """The bias's sd per axis (rad per metre): fraction x the mean correction over the mean
+        motion; none when the scans did not move."""
+        if self.step_m <= 0.0:
+            return np.zeros(3)
+        return np.abs(fraction * self.mean_rad) / self.step_m
 
 
 def floored_edges(edges: list[BetweenFactor], measured: set[int], old_floor_rad: float,
@@ -79,29 +92,36 @@ def floored_edges(edges: list[BetweenFactor], measured: set[int], old_floor_rad:
     return out
 
 
+def edge_lengths(edges: list[BetweenFactor]) -> dict[int, float]:
+    """The odometry edges' lengths (m), keyed by their second key."""
+    return {e.j: float(np.linalg.norm(e.T_i_j[:3, 3])) for e in edges if not e.is_loop}
+
+
 def bias_sensitivity(priors: list[PriorFactor], edges: list[BetweenFactor],
-                     poses: dict[int, np.ndarray], scans: dict[int, int],
-                     bias_sd_rad: np.ndarray) -> dict[int, np.ndarray]:
+                     poses: dict[int, np.ndarray], lengths: dict[int, float],
+                     bias_sd: np.ndarray) -> dict[int, np.ndarray]:
     """Each node's (6, 3) change of the solution (tangent, rotation first, its own frame) for a
-    constant rotation bias per scan of one sd on each axis, on every odometry edge: the edge
-    into j turns by scans[j] x bias. Taken from the linearised graph's solution, which is linear
-    in the edges' measurements there."""
+    constant rotation bias of one sd on each axis (bias_sd, rad per unit of lengths), on every
+    odometry edge: the edge into j turns by lengths[j] x bias. Taken from the linearised graph's
+    solution, which is linear in the edges' measurements there."""
     from lidar_slam.backend import gtsam_graph
 
+    if not np.any(bias_sd):
+        return {k: np.zeros((6, 3)) for k in poses}
     base = gtsam_graph.linear_step(3, priors, edges, poses)
     out = {k: np.zeros((6, 3)) for k in base}
     for axis in range(3):
-        sd = float(bias_sd_rad[axis])
+        sd = float(bias_sd[axis])
         if sd == 0.0:
             continue
         turned = []
         for e in edges:
-            if e.is_loop or e.j not in scans:
+            if e.is_loop or e.j not in lengths:
                 turned.append(e)
                 continue
             T = np.eye(4)
             rv = np.zeros(3)
-            rv[axis] = scans[e.j] * STEP_RAD
+            rv[axis] = lengths[e.j] * STEP_RAD
             T[:3, :3] = matrix_from_rotvec(rv)
             turned.append(replace(e, T_i_j=e.T_i_j @ T))
         step = gtsam_graph.linear_step(3, priors, turned, poses)
@@ -111,27 +131,27 @@ def bias_sensitivity(priors: list[PriorFactor], edges: list[BetweenFactor],
 
 
 def bias_covariance(priors: list[PriorFactor], edges: list[BetweenFactor],
-                    poses: dict[int, np.ndarray], scans: dict[int, int],
-                    bias_sd_rad: np.ndarray) -> dict[int, np.ndarray]:
-    """Each node's covariance (6x6, rotation first, its own frame) from a constant rotation bias
-    per scan, sd bias_sd_rad per axis (independent): J J^T of bias_sensitivity."""
-    return {k: J @ J.T for k, J in bias_sensitivity(priors, edges, poses, scans,
-                                                     bias_sd_rad).items()}
+                    poses: dict[int, np.ndarray], lengths: dict[int, float],
+                    bias_sd: np.ndarray) -> dict[int, np.ndarray]:
+    """Each node's covariance (6x6, rotation first, its own frame) from a constant rotation bias,
+    sd bias_sd per axis (independent): J J^T of bias_sensitivity."""
+    return {k: J @ J.T for k, J in bias_sensitivity(priors, edges, poses, lengths,
+                                                     bias_sd).items()}
 
 
 def refloored(priors: list[PriorFactor], edges: list[BetweenFactor],
-              poses: dict[int, np.ndarray], measured: set[int], scans: dict[int, int],
-              old_floor_rad: float, floor: RefinementFloor, bias_fraction: float
-              ) -> dict[int, np.ndarray]:
+              poses: dict[int, np.ndarray], measured: set[int], old_floor_rad: float,
+              floor_rad: float, bias_sd_per_m: np.ndarray
+              ) -> tuple[dict[int, np.ndarray], float]:
     """The nodes' marginal covariances of the graph (priors; edges as the covariances weigh them:
-    odometry and the kept loops with their kernels) at the poses, with the refinement's floor
-    and bias (module doc), scaled by the new weights' variance factor."""
+    odometry and the kept loops with their kernels) at the poses, with the measured edges'
+    rotation floor floor_rad and a rotation bias of bias_sd_per_m (module doc), the marginals
+    scaled by the new weights' variance factor; and that factor."""
     from lidar_slam.backend import gtsam_graph
     from lidar_slam.backend.slam_backend import variance_factor
 
-    edges = floored_edges(edges, measured, old_floor_rad, floor.floor_rad())
+    edges = floored_edges(edges, measured, old_floor_rad, floor_rad)
     covs = gtsam_graph.marginal_covariances(3, priors, edges, poses)
     factor = variance_factor(edges, poses)
-    bias = bias_covariance(priors, edges, poses, scans,
-                           np.abs(bias_fraction * floor.mean_rad)) if bias_fraction else {}
-    return {k: factor * c + bias.get(k, 0.0) for k, c in covs.items()}
+    bias = bias_covariance(priors, edges, poses, edge_lengths(edges), bias_sd_per_m)
+    return {k: factor * c + bias.get(k, 0.0) for k, c in covs.items()}, factor

@@ -256,12 +256,15 @@ class Odometry:
         self.n_refined = 0
         self._fast_s = 0.0  # registered time at or above refine_below_mps, in a row (s)
         self.n_refined_at_speed = 0  # of n_refined: for their lasting speed
-        # Of those scans' corrections (the refinement's pose in kiss-icp's pose's frame): the
-        # sums of the rotation vectors and of their squares, per axis (rad, rad^2): how far
-        # kiss-icp's rotation strays from the keyframes, scan by scan, and how much of it is
-        # one way (backend.odom_information.floor_from_refinement)
+        # Of those scans' corrections (the refinement's pose in kiss-icp's pose's frame): their
+        # count, the sums of the rotation vectors and of their squares per axis (rad, rad^2),
+        # and of the scans' motion (m): how far kiss-icp's rotation strays from the keyframes,
+        # scan by scan, how much of it is one way, over what distance
+        # (backend.refinement_floor)
+        self.speed_corrections = 0
         self.speed_correction_sum = np.zeros(3)
         self.speed_correction_sq = np.zeros(3)
+        self.speed_correction_m = 0.0
         self.n_refine_refused = 0  # by the correction gate (refine_max_correction_*)
         self.n_refine_unproven = 0  # by the held-out points' evidence, after the ICP
         self.n_refine_skipped = 0  # by the held-out points' evidence, before the ICP
@@ -343,8 +346,11 @@ class Odometry:
         if at_speed:
             self.n_refined_at_speed += 1
             rv = rotvec_from_matrix(correction[:3, :3])
+            self.speed_corrections += 1
             self.speed_correction_sum += rv
             self.speed_correction_sq += rv * rv
+            self.speed_correction_m += float(np.linalg.norm(
+                (np.linalg.inv(self.last_pose) @ T)[:3, 3]))
         return T
 
     def _new_threshold(self) -> None:
@@ -528,7 +534,8 @@ class Odometry:
                                       self.n_refine_unproven, self.n_refine_skipped,
                                       self._fast_s, self.n_refined_at_speed, self.n_coarse,
                                       self.n_second_tried, self.n_second_taken,
-                                      *self.speed_correction_sum, *self.speed_correction_sq]),
+                                      *self.speed_correction_sum, *self.speed_correction_sq,
+                                      self.speed_corrections, self.speed_correction_m]),
                 **self.failures.state()}
 
     def restore(self, state: dict[str, np.ndarray], deviations: np.ndarray) -> None:
@@ -549,12 +556,18 @@ class Odometry:
         self._deviations = []
         n, last_ref, first_ref, *refined = state["counters"]  # (refined: since 2026-12)
         self.n_registered = int(n)
-        refined = list(refined) + [0] * (15 - len(refined))  # older: fewer
+        # older: fewer (the corrections' sums since 2026-12-07 with their own count: a checkpoint
+        # without it starts them again)
+        corrections_kept = len(refined) >= 17
+        refined = list(refined) + [0] * (17 - len(refined))
         (self.n_refined, self.n_refine_refused, self.n_refine_unproven,
          self.n_refine_skipped) = (int(v) for v in refined[:4])
         self._fast_s, self.n_refined_at_speed = float(refined[4]), int(refined[5])
         self.n_coarse = int(refined[6])
         self.n_second_tried, self.n_second_taken = int(refined[7]), int(refined[8])
+        if not corrections_kept:
+            refined[9:17] = [0] * 8
         self.speed_correction_sum = np.array(refined[9:12], dtype=float)
         self.speed_correction_sq = np.array(refined[12:15], dtype=float)
+        self.speed_corrections, self.speed_correction_m = int(refined[15]), float(refined[16])
         self._last_ref_s, self._first_ref_s = float(last_ref), float(first_ref)

@@ -247,9 +247,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["covariance_deskew_white"] = (
         None if result.deskew_white is None else
         {"keyframes_1cm": result.deskew_white[0], "max_m": result.deskew_white[1]})
-    # lidar only on a drive: the rotation floor (deg) and bias sd per scan (deg, per axis) the
-    # covariances took from the scans refined at speed (backend.refinement_floor); null: the
-    # configured floor (too few such scans, or the covariances are the IMU / GNSS solve's)
+    # lidar only on a drive: the rotation floor (deg) and bias sd per metre (deg, per axis) the
+    # covariances took from the scans refined at speed, the new weights' variance factor and the
+    # seconds it took (backend.refinement_floor); null: the configured floor (too few such
+    # scans, odom_information off, or the covariances are the IMU / GNSS solve's)
     summary["covariance_refinement_floor"] = result.refinement_floor
     # episodes of failed odometry (lidar_slam.frontend.failure), the scans they started at, and
     # the scans of every local-map reset
