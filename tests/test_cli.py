@@ -412,7 +412,8 @@ TIMING_FIELDS = ("wall_s", "fps", "odometry_ms_per_frame", "loops_ms_per_frame",
                  "loop_worker_ms_per_frame", "loop_wait_ms_per_frame", "loop_wait_final_s",
                  "loop_worker_urgent_s", "backend_ms_per_loop_max", "backend_s",
                  "backend_final_s", "backend_share_pct", "peak_rss_mb",
-                 "inertial_solve.seconds", "imu.calibration.window_seconds")
+                 "inertial_solve.seconds", "imu.calibration.window_seconds",
+                 "covariance_refinement_floor.seconds")
 
 
 def without_timing(summary: dict) -> dict:
@@ -422,7 +423,7 @@ def without_timing(summary: dict) -> dict:
         *sections, key = name.split(".")
         d = out
         for s in sections:
-            d = d.get(s, {})
+            d = d.get(s) or {}  # a section may be null (covariance_refinement_floor)
         d.pop(key, None)
     return out
 
