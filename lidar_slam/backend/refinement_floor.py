@@ -38,7 +38,7 @@ import numpy as np
 from lidar_slam.backend.factors import BetweenFactor, PriorFactor
 from lidar_slam.geometry import matrix_from_rotvec
 
-STEP_RAD = 1e-6  # the bias per scan by which the sensitivity is taken (the graph is linear there)
+STEP_RAD = 1e-6  # the bias (rad per metre) by which the sensitivity is taken (linear there)
 
 
 @dataclass(frozen=True)
