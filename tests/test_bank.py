@@ -164,6 +164,49 @@ def test_run_scores_a_built_sequence_and_writes_json_and_markdown(tmp_path, monk
     assert yaml.safe_load((tmp_path / "bank" / "runs" / "perturb-1" / "variant.yaml")
                           .read_text())["odometry"]["pose_quantum_m"] == pytest.approx(1.001e-6)
     assert "## Spread" in md and "lidar-slam: 2 runs each" in md
+    # --rescore: the same folders scored again, nothing run (no timing), the same figures
+    rescored = tmp_path / "docs" / "rescored.json"
+    assert b.main(["run", "--root", str(tmp_path / "bank"), "--out", str(rescored),
+                   "--systems", "lidar-slam", "--perturb", "1", "--rescore"]) == 0
+    data2 = json.loads(rescored.read_text())
+    cells2 = data2["results"][spec.name]["lidar-slam"]
+    assert data2["rescored"] is True and cells2["fps"] is None and cells2["wall_s"] is None
+    for key in ("ate_m", "odom_ate_m", "nees_mean"):
+        assert cells2[key] == cells[key]
+    assert cells2["perturbed"][0]["ate_m"] == again["ate_m"]
+    # a folder that was never run is an error of that row, not a crash
+    assert b.main(["run", "--root", str(tmp_path / "bank"), "--out", str(rescored),
+                   "--systems", "lidar-slam", "--work", str(tmp_path / "none"),
+                   "--rescore"]) == 1
+
+
+def test_loops_are_scored_at_the_banks_bar_and_at_benchmark_mds(tmp_path):
+    """A loop 4 deg off the truth is wrong at the bank's 0.3 m / 3 deg and right at
+    BENCHMARK.md's 1 m / 5 deg; one 6 deg off is wrong at both; one 0.5 m off right at 1 m."""
+    from lidar_slam.geometry import make_pose, matrix_from_rotvec, to_xyz_quat
+    from tools import benchmark
+
+    b = bank()
+    n = 300
+    gt = np.stack([make_pose(np.eye(3), [0.1 * i, 0.0, 0.0]) for i in range(n)])
+    gt[200:] = gt[:100]  # frames 200.. revisit 0..
+    rows = []
+    for q, m, err in ((210, 10, make_pose(matrix_from_rotvec([np.radians(4.0), 0, 0]), [0, 0, 0])),
+                      (220, 20, make_pose(matrix_from_rotvec([0, np.radians(6.0), 0]), [0, 0, 0])),
+                      (230, 30, make_pose(np.eye(3), [0.5, 0, 0])),
+                      (240, 40, np.eye(4))):
+        T = (np.linalg.inv(gt[m]) @ gt[q]) @ err
+        rows.append(f"{q},{m},1," + ",".join(f"{v:.9f}" for v in to_xyz_quat(T)))
+    out = tmp_path / "run"
+    out.mkdir()
+    np.savetxt(out / "poses_kitti.txt", gt[:, :3].reshape(n, 12))
+    (out / "loops.csv").write_text("query_frame,match_frame,accepted,x,y,z,qx,qy,qz,qw\n"
+                                   + "\n".join(rows) + "\n")
+    seq = benchmark.Sequence(tmp_path, "s", 0, n, gt, None)
+    res = b.lidar_slam_extras(seq, out)
+    assert res["loops_accepted"] == 4
+    assert (res["loops_precise"], res["loop_precision"]) == (1, 0.25)
+    assert (res["loops_precise_bm"], res["loop_precision_bm"]) == (3, 0.75)
 
 
 def test_perturbed_runs_keep_the_variant_under_test_and_alternate_their_grid(tmp_path):

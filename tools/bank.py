@@ -27,7 +27,8 @@ Columns: ATE (RMSE after rigid alignment, m) and worst frame (max, m); for lidar
 odometry-only ATE (odometry_kitti.txt, before loops) and final / odometry, how much too long (+)
 or short (-) the odometry and the final poses are (per cent: the scale of the best similarity to
 the truth, lidar_slam.eval.metrics.scale_excess); loop stage precision
-(accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted), the loops the
+(accepted loops within LOOP_TRANS_M / LOOP_ROT_DEG of the truth, over accepted; and within
+BENCHMARK.md's LOOP_BM_TRANS_M / LOOP_BM_ROT_DEG, the *_bm keys), the loops the
 final solve kept (loops.csv's backend column) and the same precision over those; the mean
 NEES of keyframe positions (covariances.csv against the truth; 3 when consistent); frames/s,
 wall time (s) and peak RSS (MB) of the whole process. Loop precision and NEES are scored at the
@@ -67,6 +68,11 @@ from tools import benchmark  # noqa: E402
 KITTI_POSES = Path("/work/shared/data/kitti_gt/poses")
 SYSTEMS = ("lidar-slam", "lidar-slam-lidar-only", "rko-lio")
 LOOP_TRANS_M, LOOP_ROT_DEG = 0.3, 3.0
+# BENCHMARK.md's own definition of a correct loop (1 m / 5 deg), scored beside the bank's
+# stricter one above as the *_bm keys: the Done-when's "correct" is the project's definition;
+# the stricter bar shows the few-degree tilt loops the lidar-only walks close (docs/bank.md).
+LOOP_BM_TRANS_M, LOOP_BM_ROT_DEG = 1.0, 5.0
+LOOP_BARS = {"": (LOOP_TRANS_M, LOOP_ROT_DEG), "_bm": (LOOP_BM_TRANS_M, LOOP_BM_ROT_DEG)}
 # rko_lio's LIOConfig docs: "double_downsample ... Disabling for sparse LiDARs may improve
 # results"; the 16- and 32-beam spinners and the Livox pattern are the sparse ones here.
 RKO_SPARSE = ("vlp16", "xt32", "mid360")
@@ -346,16 +352,17 @@ def node_scores(seq_path: Path, spec: Spec, seq: benchmark.Sequence, out: Path) 
                   f"(first {missing[0][0]} -> {missing[0][1]}): loops not scored at the nodes",
                   file=sys.stderr)
         else:
-            ok = []
+            err = []
             for q, m in acc:  # each loop against the truth at its two nodes
                 E = inverse(inverse(truth[m]) @ truth[q]) @ edges[(q, m)]
-                ok.append(bool(np.linalg.norm(E[:3, 3]) <= LOOP_TRANS_M
-                               and rotation_angle_deg(E) <= LOOP_ROT_DEG))
-            res["loops_precise_nodes"] = int(sum(ok))
-            res["loop_precision_nodes"] = float(np.mean(ok))
+                err.append((float(np.linalg.norm(E[:3, 3])), float(rotation_angle_deg(E))))
             kept = backend_kept(loops_csv)
-            if kept is not None and len(kept) == len(ok) and kept.any():
-                res["loop_precision_kept_nodes"] = float(np.asarray(ok)[kept].mean())
+            for sfx, (bar_m, bar_deg) in LOOP_BARS.items():
+                ok = [t <= bar_m and r <= bar_deg for t, r in err]
+                res[f"loops_precise{sfx}_nodes"] = int(sum(ok))
+                res[f"loop_precision{sfx}_nodes"] = float(np.mean(ok))
+                if kept is not None and len(kept) == len(ok) and kept.any():
+                    res[f"loop_precision_kept{sfx}_nodes"] = float(np.asarray(ok)[kept].mean())
     return res
 
 
@@ -403,13 +410,14 @@ def lidar_slam_extras(seq: benchmark.Sequence, out: Path, seq_path: Path | None 
         kept = backend_kept(loops)
         if kept is not None and len(kept) == len(pairs):
             res["loops_kept"] = int(kept.sum())
-        if len(pairs) and T is not None:
-            s = metrics.loop_precision_recall(pairs, T, seq.gt, max_trans_err_m=LOOP_TRANS_M,
-                                              max_rot_err_deg=LOOP_ROT_DEG, max_dist_m=3.0)
-            res.update(loops_precise=s.n_correct, loop_precision=s.precision,
-                       loop_recall_events=s.recall_events)
+        for sfx, (bar_m, bar_deg) in LOOP_BARS.items() if len(pairs) and T is not None else ():
+            s = metrics.loop_precision_recall(pairs, T, seq.gt, max_trans_err_m=bar_m,
+                                              max_rot_err_deg=bar_deg, max_dist_m=3.0)
+            res.update({f"loops_precise{sfx}": s.n_correct, f"loop_precision{sfx}": s.precision})
+            if not sfx:
+                res["loop_recall_events"] = s.recall_events
             if "loops_kept" in res and kept.any():
-                res["loop_precision_kept"] = float(s.correct[kept].mean())
+                res[f"loop_precision_kept{sfx}"] = float(s.correct[kept].mean())
     cov = out / "covariances.csv"
     if cov.is_file() and seq.gt is not None and len(final) == len(seq.gt):
         covs = read_covariances(cov)
@@ -420,10 +428,10 @@ def lidar_slam_extras(seq: benchmark.Sequence, out: Path, seq_path: Path | None 
                        nees_keyframes=len(nees))
     if seq_path is not None and spec is not None and seq.gt is not None:
         nodes = node_scores(seq_path, spec, seq, out)
+        loop_keys = [k + sfx for sfx in LOOP_BARS
+                     for k in ("loops_precise", "loop_precision", "loop_precision_kept")]
         for key, node_key, stamp_key in (
-                ("loops_precise", "loops_precise_nodes", "loops_precise_stamps"),
-                ("loop_precision", "loop_precision_nodes", "loop_precision_stamps"),
-                ("loop_precision_kept", "loop_precision_kept_nodes", "loop_precision_kept_stamps"),
+                *((k, f"{k}_nodes", f"{k}_stamps") for k in loop_keys),
                 ("nees_mean", "nees_nodes_mean", "nees_stamps_mean"),
                 ("nees_median", "nees_nodes_median", "nees_stamps_median"),
                 ("nees_keyframes", "nees_nodes_keyframes", "nees_stamps_keyframes")):
@@ -490,20 +498,26 @@ def rko_lio_settings(spec: Spec) -> dict:
 
 
 def run_sequence(spec: Spec, seq_path: Path, work: Path, systems: list[str],
-                 variant: Path | None = None) -> dict:
-    """Every system once on one built sequence; {system: cells} (see COLUMNS)."""
+                 variant: Path | None = None, rescore: bool = False) -> dict:
+    """Every system once on one built sequence; {system: cells} (see COLUMNS). rescore: score
+    the run folders already under work instead of running (no timing: frames/s, wall and
+    peak MB stay empty)."""
     seq_dir = work / spec.name
     seq_dir.mkdir(parents=True, exist_ok=True)
     config = lidar_slam_config(spec, seq_path, seq_dir / "lidar-slam-config.yaml", variant)
     seq = benchmark.load_sequence(str(seq_path), 0, None, {seq_path.name: config})
     gt_file, gt_end_file = benchmark.write_truth_files(seq, seq_dir)
     rows = {s: benchmark.Row(seq.name, s, seq.n) for s in systems}
-    if "rko-lio" in rows:
+    if "rko-lio" in rows and not rescore:
         benchmark.prepare_rko_lio(rows, seq, seq_dir, rko_lio_settings(spec))
-    benchmark.warm_page_cache(seq.path)
+    if not rescore:
+        benchmark.warm_page_cache(seq.path)
     out = {}
     for s, row in rows.items():
-        benchmark.run_once(row, seq, seq_dir, "")
+        if not rescore:
+            benchmark.run_once(row, seq, seq_dir, "")
+        elif not (seq_dir / s).is_dir():
+            row.error = f"no run folder {seq_dir / s} to score"
         if not row.error and not row.skipped:
             benchmark.evaluate_row(row, seq, seq_dir / s,
                                    gt_file if s in benchmark.OURS else gt_end_file)
@@ -529,6 +543,8 @@ COLUMNS = (("ate_m", "ATE m", 3, "high", False), ("worst_frame_m", "worst frame 
            ("loops_accepted", "loops", 0, None, True),
            ("loop_precision", f"loop precision ({LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg)", 2,
             "low", True),
+           ("loop_precision_bm", f"loop precision ({LOOP_BM_TRANS_M:g} m / {LOOP_BM_ROT_DEG:g} "
+            "deg, BENCHMARK.md)", 2, "low", True),
            ("loops_kept", "loops kept", 0, None, True),
            ("loop_precision_kept", "precision of kept", 2, "low", True),
            ("nees_mean", "NEES (3)", 1, "nees", True),
@@ -607,9 +623,10 @@ def system_table(system: str, results: dict[str, dict]) -> tuple[str, dict]:
 
 # What --perturb keeps of each perturbed run, and the spread table's columns.
 SPREAD_KEYS = ("ate_m", "odom_ate_m", "final_over_odom", "loops_accepted", "loop_precision",
-               "loop_precision_kept", "nees_mean")
+               "loop_precision_kept", "loop_precision_bm", "nees_mean")
 SPREAD_COLUMNS = (("ate_m", "ATE m", 3, "high"), ("loop_precision", "loop precision", 2, "low"),
                   ("loop_precision_kept", "precision of kept", 2, "low"),
+                  ("loop_precision_bm", "loop precision (BENCHMARK.md)", 2, "low"),
                   ("nees_mean", "NEES (3)", 1, "nees"), ("final_over_odom", "final / odometry", 2,
                                                          "high"))
 
@@ -667,14 +684,17 @@ def spread_table(system: str, results: dict[str, dict]) -> str:
 
 
 def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | None,
-        argv: list[str], variant: Path | None = None, perturb: int = 0) -> int:
+        argv: list[str], variant: Path | None = None, perturb: int = 0,
+        rescore: bool = False) -> int:
     """Every system on every built sequence; writes out (JSON) and out.with_suffix('.md').
     perturb: each of lidar-slam's runs that many times more, perturbed (perturbed_variant):
-    their figures in the JSON under "perturbed", their range in the markdown's Spread."""
+    their figures in the JSON under "perturbed", their range in the markdown's Spread.
+    rescore: score the folders an earlier run left under work instead (run_sequence)."""
     results: dict[str, dict] = {}
     status: dict[str, str] = {}
     timing: dict[str, float] = {}
-    bytecode = benchmark.compile_ours() if any(s in benchmark.OURS for s in systems) else None
+    bytecode = (benchmark.compile_ours() if any(s in benchmark.OURS for s in systems)
+                and not rescore else None)
     for spec in BANK:
         if only and spec.name not in only:
             continue
@@ -685,11 +705,12 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
             continue
         t0 = time.perf_counter()
         try:
-            results[spec.name] = run_sequence(spec, path, work, systems, variant)
+            results[spec.name] = run_sequence(spec, path, work, systems, variant, rescore)
             ours = [s for s in systems if s in benchmark.OURS]
             for k in range(1, perturb + 1):
                 again = run_sequence(spec, path, work / f"perturb-{k}", ours,
-                                     perturbed_variant(variant, k, work / f"perturb-{k}"))
+                                     perturbed_variant(variant, k, work / f"perturb-{k}"),
+                                     rescore)
                 for s, cells in again.items():
                     results[spec.name][s].setdefault("perturbed", []).append(
                         {key: cells.get(key) for key in SPREAD_KEYS + ("error",)})
@@ -701,7 +722,8 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
         status[spec.name] = "run"
         print(f"{spec.name}: all systems in {timing[spec.name]:.0f} s", flush=True)
     command = "python tools/bank.py " + shlex.join(argv)
-    meta = {"command": command, "date": datetime.datetime.now().isoformat(timespec="seconds"),
+    meta = {"command": command, "rescored": rescore,
+            "date": datetime.datetime.now().isoformat(timespec="seconds"),
             "commit": benchmark.git_commit(), "cpus": os.cpu_count(),
             "systems": systems, "root": str(root), "seconds_per_sequence": timing,
             "bytecode_compiled": bytecode}
@@ -709,7 +731,8 @@ def run(root: Path, out: Path, work: Path, systems: list[str], only: set[str] | 
           f"commit {meta['commit']}, {meta['cpus']} CPUs, one run per (sequence, system); "
           "ATE: RMSE after rigid alignment; worst frame: the largest aligned error; loop "
           f"precision: accepted loops within {LOOP_TRANS_M} m / {LOOP_ROT_DEG:g} deg of the "
-          "truth over accepted; NEES: mean over keyframes of the position error's "
+          f"truth over accepted (and within BENCHMARK.md's {LOOP_BM_TRANS_M:g} m / "
+          f"{LOOP_BM_ROT_DEG:g} deg); NEES: mean over keyframes of the position error's "
           "e' P^-1 e (3 when the covariances are consistent); both at the graph nodes' "
           "instants (covariances.csv node_dt_s; the JSON's *_stamps: at the frames' stamps); "
           "frames/s, wall, peak MB: the whole process.", "", "## The bank", "", spec_table(status)]
@@ -827,6 +850,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--perturb", type=int, default=0, metavar="K",
                    help="run lidar-slam K more times per sequence, kiss-icp's pose rounded on "
                         "a grid 0.1 %% off each time, and report the spread (a run's chaos)")
+    r.add_argument("--rescore", action="store_true",
+                   help="score the run folders an earlier run left under --work (with the same "
+                        "--perturb) instead of running: scoring changed, the runs did not")
     args = ap.parse_args(argv)
     if args.action == "spec":
         print(spec_table(), end="")
@@ -852,7 +878,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.perturb < 0:
         sys.exit("--perturb: a count of runs, 0 or more")
     return run(args.root, args.out, args.work or args.root / "runs", systems, only, argv,
-               args.config, args.perturb)
+               args.config, args.perturb, args.rescore)
 
 
 if __name__ == "__main__":
