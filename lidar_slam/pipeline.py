@@ -101,8 +101,8 @@ class RunResult:
         """Every frame's pose (K, 4, 4): its odometry moved by the correction (optimised pose
         less odometry) of the keyframe it hangs off and of the next one, blended by its stamp
         between theirs. A keyframe's own frame gets exactly the keyframe's pose (moved from
-        its node to the stamp where the node is not at the stamp: keyframe 0, and sweep-end
-        scans without an IMU, Pipeline._add_keyframe); one moved
+        its node to the stamp where the node is not at the stamp: keyframe 0, and scans with
+        point times without an IMU, Pipeline._node_at_ref); one moved
         by its own keyframe alone would jump at the next (on a car with an IMU the final
         solve corrects keyframes by a few cm and 0.01 deg). Frames the final solve placed with
         the IMU (frame_poses) take those."""
@@ -256,6 +256,15 @@ class Pipeline:
         return (self.inertial is None and odom.registered and deskewed.ref_s < 0.0
                 and deskewed.motion is None)
 
+    def _node_at_ref(self, deskewed: DeskewedScan, odom: OdometryResult) -> bool:
+        """Whether a keyframe's cloud and node stay at the registered instant (the sweep's
+        middle) instead of its stamp: without an IMU, wherever the stamp is not the registered
+        instant. The stamp pose is then only the registered one moved along the odometry's
+        motion (extrapolated at sweep end, interpolated between two registrations at sweep
+        start), which a shake faster than the scans cannot follow."""
+        return (self.inertial is None and odom.registered and deskewed.ref_s != 0.0
+                and deskewed.motion is None)
+
     def _settle(self, deskewed: DeskewedScan, odom: OdometryResult) -> None:
         """The previous frame's pose at its stamp, when it was extrapolated (sweep-end stamps,
         no IMU): interpolated between its registered instant and this scan's, as a sweep-start
@@ -297,17 +306,23 @@ class Pipeline:
     def _add_keyframe(self, deskewed: DeskewedScan, odom: OdometryResult) -> None:
         """Keyframe cloud (one deskewed point per voxel within the map range) to the store; its
         node to the back-end and its loop search to the worker. The cloud and node are at the
-        stamp, or at the registered instant (the sweep's middle) when the stamp is only
-        extrapolated from it (_extrapolated): there a loop measures what the two registrations
-        measured, not their extrapolations' errors (on a legged trot, lidar only, 3-6 deg of
-        tilt: docs/bank.md)."""
+        stamp, or without an IMU at the registered instant (the sweep's middle: _node_at_ref),
+        whose stamp pose is only extrapolated or interpolated from it: there a loop measures
+        what two registrations measured, not the stamp offsets' errors (on a legged trot 3-6
+        deg of tilt; office-handheld-mid360's shake loops up to 7 deg: docs/bank.md)."""
         c = self.cfg
         pts, inten = deskewed.cloud(c.keyframes.cloud_voxel_m, c.data.min_range_m,
                                     min(c.data.max_range_m, c.map.max_range_m))
         T_node = odom.T_world_scan
-        at_ref = self._extrapolated(deskewed, odom)
+        at_ref = self._node_at_ref(deskewed, odom)
+        anchor = None  # the odometry's own copy of the keyframe, when not the node's
         if at_ref:
             T_node = odom.T_world_ref
+            if not self._extrapolated(deskewed, odom):
+                # a sweep-start stamp: the odometry keeps its keyframes at their stamps, as it
+                # always has (the same poses; only the graph's nodes move to the sweep's middle)
+                anchor = (np.array(odom.T_world_scan, dtype=np.float64), np.asarray(
+                    transform_points(inverse(odom.T_ref_stamp), pts), dtype=np.float32))
         elif odom.registered:
             pts = transform_points(inverse(odom.T_ref_stamp), pts)
             # the first scan: no motion known yet, its stamp pose is its registered one
@@ -319,7 +334,7 @@ class Pipeline:
         if at_ref and deskewed.ref_s != 0.0 and self.result.kf_node_dt is not None:
             self.result.kf_node_dt[kf.id] = float(deskewed.ref_s)
         if len(kf.points):
-            self.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
+            self.odometry.add_anchor(*(anchor or (kf.T_world_kf_odom, kf.points)))
         up = self.inertial.up_in_lidar() if self.inertial is not None else None
         if up is not None and odom.registered:
             self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up

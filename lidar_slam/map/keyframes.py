@@ -12,8 +12,8 @@ localize --map`, `lidar-slam export`). Layout (version 3), under RUN/keyframes/:
   int64, point count int64, T_world_kf_odom (4x4 float64, row-major), has_intensity uint8,
   stamp_s float64 (the scan's stamp, NaN when unknown; version 3 added it).
 - `points.bin`: float32 x, y, z, intensity per point (metres, the keyframe's sensor frame at
-  its scan's stamp; keyframe 0, and sweep-end scans of a run without an IMU, at the middle of the
-  sweep, where T_world_kf_odom is too), keyframe after keyframe.
+  its scan's stamp; keyframe 0, and every scan with per-point times of a run without an IMU, at
+  the middle of the sweep, where T_world_kf_odom is too), keyframe after keyframe.
 - `map_poses.bin` (end of the run): T_map_kf per keyframe, 4x4 float64 row-major little-endian,
   in keyframe order: the final (loop-corrected) poses in the map frame, which is the frame of
   the run's `poses_kitti.txt` (frame 0 = identity), the frame `map.ply` is in.

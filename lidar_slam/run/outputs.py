@@ -83,10 +83,10 @@ COVARIANCE_COLUMNS = tuple(f"{TANGENT[i]}_{TANGENT[j]}" for i in range(6) for j 
 def write_covariances(path: Path, result: RunResult) -> None:
     """covariances.csv: per keyframe its input frame, its id, node_dt_s (the instant its graph
     node and covariance are at, minus the frame's stamp: 0, or the sweep's middle for keyframe
-    0 and without an IMU for sweep-end stamps; nan when not known) and the 21 upper-triangle
-    values (row by row) of the 6x6 marginal covariance of the final solve (rotation first,
-    rad^2 and m^2, in the keyframe's frame: the true pose is T_world_kf @ Exp(xi),
-    xi ~ N(0, cov))."""
+    0 and, without an IMU, for every scan with per-point times; nan when not known) and the 21
+    upper-triangle values (row by row) of the 6x6 marginal covariance of the final solve
+    (rotation first, rad^2 and m^2, in the keyframe's frame: the true pose is
+    T_world_kf @ Exp(xi), xi ~ N(0, cov))."""
     table = result.store.table()
     iu = np.triu_indices(6)
     dts = result.kf_node_dt
