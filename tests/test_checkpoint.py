@@ -187,10 +187,12 @@ def test_a_run_killed_while_its_pipeline_starts_is_one_resume_knows(tmp_path, mo
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 0
 
 
+@pytest.mark.parametrize("missing", ["unsettled", "kf_nodes_at_ref"])
 def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_path,
-                                                                            monkeypatch):
-    """A checkpoint without the unsettled frame (made before 8d17648, when a sweep-end scan's
-    keyframe was kept at its stamp) of a run without an IMU is refused with one line, not
+                                                                            monkeypatch, missing):
+    """A checkpoint of a run without an IMU made before its keyframes were kept at mid-sweep
+    (without the unsettled frame: before 8d17648, sweep-end stamps; without kf_nodes_at_ref:
+    before a243844, sweep-start stamps, as the sample's) is refused with one line, not
     continued into a store mixing the two conventions."""
     import io
 
@@ -204,7 +206,7 @@ def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_
     d = out / "checkpoint"
     manifest = checkpoint._read_manifest(d)
     with np.load(d / manifest["state"]) as z:
-        old = {k: z[k] for k in z.files if k != "unsettled"}
+        old = {k: z[k] for k in z.files if k != missing}
     buf = io.BytesIO()
     np.savez(buf, **old)
     (d / manifest["state"]).write_bytes(buf.getvalue())

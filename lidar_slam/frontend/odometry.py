@@ -281,6 +281,11 @@ class Odometry:
         self._anchors.append((T_world_kf, points_kf))
         self._targets = {}
 
+    def anchors(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Every kept anchor (T_world_kf, points_kf), oldest first (a checkpoint keeps them:
+        they are not always the keyframe store's clouds, Pipeline._add_keyframe)."""
+        return list(self._anchors)
+
     def _recent(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The last odometry.refine_keyframes anchors (oldest first)."""
         k = self.cfg.odometry.refine_keyframes

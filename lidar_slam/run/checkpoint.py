@@ -211,6 +211,7 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         os.fsync(fh.fileno())
     n_dev = (d / "deviations.bin").stat().st_size // (16 * 8)
     odo = pipe.odometry.state()
+    anchors = pipe.odometry.anchors()
     constraints = pipe.backend.constraints if pipe.backend is not None else []
     meta = {"frames": len(r.indices), "keyframes": len(r.store), "deviations": n_dev,
             "loops_applied_upto": loops_applied_upto, "skipped_empty": r.skipped_empty,
@@ -230,6 +231,15 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
         "kf_node_dt": (np.full((1, 2), np.nan) if r.kf_node_dt is None else
                        np.array(sorted(r.kf_node_dt.items()), np.float64).reshape(-1, 2)),
+        # without an IMU every keyframe node is at its registered instant (a243844,
+        # Pipeline._node_at_ref): a checkpoint without this mark kept sweep-start ones at stamps
+        "kf_nodes_at_ref": np.array(1, np.int64),
+        # the odometry's keyframe copies (refinement targets, failure watch) as the run has
+        # them: without an IMU at the stamps, where the store's clouds are at mid-sweep
+        "anchor_T": np.array([T for T, _ in anchors], np.float64).reshape(-1, 4, 4),
+        "anchor_counts": np.array([len(p) for _, p in anchors], np.int64),
+        "anchor_points": (np.concatenate([np.asarray(p, np.float32) for _, p in anchors])
+                          if anchors else np.zeros((0, 3), np.float32)),
         # the last frame's registered pose when its stamp pose is still extrapolated
         # (Pipeline.unsettled): position, ref_s, T_world_ref
         "unsettled": (np.zeros((0, 18)) if pipe.unsettled is None else np.array(
@@ -288,9 +298,10 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     node_dt = a.get("kf_node_dt", np.full((1, 2), np.nan))  # NaN: not known (older checkpoint)
     r.kf_node_dt = (None if np.isnan(node_dt).any() else
                     {int(k): float(dt) for k, dt in node_dt})
-    if "unsettled" not in a and pipe.inertial is None and meta["frames"]:
-        # before 8d17648 a sweep-end scan's keyframe was at its stamp, now at mid-sweep: a run
-        # continued across the change would mix the two
+    if (("unsettled" not in a or "kf_nodes_at_ref" not in a) and pipe.inertial is None
+            and meta["frames"]):
+        # before 8d17648 a sweep-end scan's keyframe was at its stamp, before a243844 a
+        # sweep-start one, now both at mid-sweep: a run continued across would mix the two
         raise InputError(state, f"made by an older lidar-slam (keyframes of runs without an "
                          f"IMU kept otherwise); {_RERUN}")
     for row in a.get("unsettled", np.zeros((0, 18))):
@@ -316,15 +327,20 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     if imu:
         pipe.inertial.restore(imu)
     r.store.truncate(meta["keyframes"])
-    anchors = []  # the refinement's targets, as the run had them: the last n_anchors non-empty
-    for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first
-        if len(anchors) == pipe.odometry.n_anchors:
-            break
-        kf = r.store.get(kf_id)
-        if len(kf.points):
-            anchors.insert(0, kf)
-    for kf in anchors:
-        pipe.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
+    if "anchor_T" in a:  # the odometry's keyframe copies, as the run had them
+        ends = np.cumsum(a["anchor_counts"])
+        for T, pts in zip(a["anchor_T"], np.split(a["anchor_points"], ends[:-1])):
+            pipe.odometry.add_anchor(np.array(T), pts)
+    else:  # older (with an IMU: the same as the store's last non-empty keyframe clouds)
+        anchors = []
+        for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first
+            if len(anchors) == pipe.odometry.n_anchors:
+                break
+            kf = r.store.get(kf_id)
+            if len(kf.points):
+                anchors.insert(0, kf)
+        for kf in anchors:
+            pipe.odometry.add_anchor(kf.T_world_kf_odom, kf.points)
     for kf_id in range(len(r.store)):  # the odometry edges' information, as the run had it
         kf = r.store.get(kf_id)
         pipe.weigh_keyframe(kf_id, kf.T_world_kf_odom, kf.points)
