@@ -15,6 +15,8 @@ import pytest
 
 from lidar_slam.geometry import inverse, make_pose, rotation_angle_deg, yaw_matrix
 from lidar_slam.io.trajectory import read_kitti_poses, read_tum
+from lidar_slam.map.keyframes import TABLE_DTYPE
+from lidar_slam.run.outputs import read_node_dt
 
 
 def lidar_slam(*args, timeout=600):
@@ -72,9 +74,22 @@ def test_map_layout_holds_final_keyframe_poses_in_the_map_frame(sim_map):
     try:
         assert len(m) == manifest["keyframes"] == sim_map.run_summary["keyframes"]
         poses = read_kitti_poses(sim_map.run / "poses_kitti.txt")
-        # A keyframe's frame sits exactly on its keyframe (frame 0 is moved to its stamp).
-        t, r = errors(m.T_map_kf[1:], poses[m.frame_index[1:]])
+        odom = read_kitti_poses(sim_map.run / "odometry_kitti.txt")
+        table = np.fromfile(sim_map.run / "keyframes" / "table.bin", dtype=TABLE_DTYPE)
+        T_odom = table["T"][: len(m)]
+        # A keyframe's frame sits exactly on its keyframe moved from the node to the frame's
+        # stamp as the odometry moved it: the node is at the sweep's middle here (lidar only,
+        # covariances.csv node_dt_s), so that offset is half a sweep. Keyframe 0's own frame
+        # (poses_kitti's identity) gives the odometry's world in the map frame.
+        f = m.frame_index
+        W = T_odom[0] @ np.linalg.inv(m.T_map_kf[0])  # frame 0's stamp in the odometry's world
+        offset_final = np.linalg.inv(m.T_map_kf) @ poses[f]
+        offset_odom = np.linalg.inv(T_odom) @ W @ odom[f]
+        t, r = errors(offset_final, offset_odom)
         assert t.max() < 1e-6 and r.max() < 1e-6
+        dts = read_node_dt(sim_map.run / "covariances.csv")
+        assert all(dts[int(k)] > 0 for k in f[1:])  # at the sweep's middle, after the stamp
+        assert np.linalg.norm(offset_final[1:, :3, 3], axis=1).min() > 1e-3
         ids, grids = m.descriptor_grids()
         assert len(ids) == len(m) and manifest["map"]["descriptor_rows"] == len(m)
         assert grids.shape[1:] == (m.cfg.loop.scan_context.rings, m.cfg.loop.scan_context.sectors)

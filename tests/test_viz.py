@@ -73,10 +73,12 @@ def test_rrd_recording_shows_keyframe_covariances_as_ellipsoids(tmp_path):
     centers = np.array(batch.column("Ellipsoids3D:centers").to_pylist()[0])
     half_sizes = np.array(batch.column("Ellipsoids3D:half_sizes").to_pylist()[0])
     covs = read_covariances(run / "covariances.csv")
-    poses = np.loadtxt(run / "poses_kitti.txt").reshape(-1, 3, 4)
+    # each ellipsoid at its keyframe's node (the final map pose: at the sweep's middle here,
+    # lidar only with point times, half a sweep from the frame's stamp pose)
+    nodes = np.fromfile(run / "keyframes" / "map_poses.bin", dtype="<f8").reshape(-1, 4, 4)
     frames = sorted(covs)
-    assert len(centers) == len(frames)
-    np.testing.assert_allclose(centers[1:], poses[frames[1:], :, 3], atol=1e-4)
+    assert len(centers) == len(frames) == len(nodes)
+    np.testing.assert_allclose(centers, nodes[:, :3, 3], atol=1e-4)
     # 3 sigma: the largest half-axis is 3 x the square root of the largest eigenvalue.
     last = np.linalg.eigvalsh(covs[frames[-1]][3:, 3:]).max()
     np.testing.assert_allclose(half_sizes[-1].max(), 3.0 * np.sqrt(last), rtol=1e-4)
