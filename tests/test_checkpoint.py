@@ -187,12 +187,40 @@ def test_a_run_killed_while_its_pipeline_starts_is_one_resume_knows(tmp_path, mo
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 0
 
 
-@pytest.mark.parametrize("missing", ["unsettled", "kf_nodes_at_ref"])
+def test_a_checkpoint_without_the_odometrys_keyframe_copies_resumes(tmp_path, monkeypatch):
+    """A checkpoint made before the odometry's keyframe copies were kept (before 393c040: the
+    sample's sweep-start keyframes then at their stamps) resumes with the store's clouds as the
+    copies, and the run ends (its keyframe nodes after it at mid-sweep, each with its own
+    node_dt_s)."""
+    import io
+
+    from lidar_slam.run import checkpoint, run_sequence
+    from lidar_slam.run.outputs import read_node_dt
+
+    resume = stop_pipeline_after(monkeypatch, 30)
+    out = tmp_path / "run"
+    assert run_sequence(SAMPLE, out, progress=False).failure.exit_code == 130
+    d = out / "checkpoint"
+    manifest = checkpoint._read_manifest(d)
+    with np.load(d / manifest["state"]) as z:
+        old = {k: z[k] for k in z.files if not k.startswith("anchor_")}
+    assert set(old) < set(z.files)
+    buf = io.BytesIO()
+    np.savez(buf, **old)
+    (d / manifest["state"]).write_bytes(buf.getvalue())
+    manifest["files"][f"checkpoint/{manifest['state']}"] = checkpoint._whole_entry(buf.getvalue())
+    checkpoint._write_manifest(d, {k: v for k, v in manifest.items()
+                                   if k not in ("version", "sha256")})
+    resume()
+    resumed = run_sequence(SAMPLE, out, resume=True, progress=False)
+    assert resumed.failure is None and resumed.summary["resumed_at_frame"] == 30
+    assert len(read_node_dt(out / "covariances.csv")) == resumed.summary["keyframes"]
+
+
 def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_path,
-                                                                            monkeypatch, missing):
-    """A checkpoint of a run without an IMU made before its keyframes were kept at mid-sweep
-    (without the unsettled frame: before 8d17648, sweep-end stamps; without kf_nodes_at_ref:
-    before a243844, sweep-start stamps, as the sample's) is refused with one line, not
+                                                                            monkeypatch):
+    """A checkpoint without the unsettled frame (made before 8d17648, when a sweep-end scan's
+    keyframe was kept at its stamp) of a run without an IMU is refused with one line, not
     continued into a store mixing the two conventions."""
     import io
 
@@ -206,7 +234,7 @@ def test_a_lidar_only_checkpoint_from_before_mid_sweep_keyframes_is_refused(tmp_
     d = out / "checkpoint"
     manifest = checkpoint._read_manifest(d)
     with np.load(d / manifest["state"]) as z:
-        old = {k: z[k] for k in z.files if k != missing}
+        old = {k: z[k] for k in z.files if k != "unsettled"}
     buf = io.BytesIO()
     np.savez(buf, **old)
     (d / manifest["state"]).write_bytes(buf.getvalue())

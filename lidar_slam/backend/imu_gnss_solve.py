@@ -69,7 +69,7 @@ class RunTrajectory:
     """What the run knows of its path: keyframe stamps (s) and odometry poses (n, 4, 4: the
     back-end's nodes), the odometry at each keyframe's stamp (n, 4, 4: the first keyframe's node
     is at the middle of its sweep, lidar_slam.frontend.odometry T_world_first, and so is every
-    keyframe's of a sweep-end run without an IMU, lidar_slam.pipeline), every frame's
+    keyframe's with point times in a run without an IMU, Pipeline._node_at_ref), every frame's
     stamp and odometry pose (m, 4, 4); all in the odometry's world frame."""
 
     kf_stamps_s: np.ndarray

@@ -231,9 +231,6 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "kf_up": np.array([[k, *u] for k, u in sorted(r.kf_up.items())]).reshape(-1, 4),
         "kf_node_dt": (np.full((1, 2), np.nan) if r.kf_node_dt is None else
                        np.array(sorted(r.kf_node_dt.items()), np.float64).reshape(-1, 2)),
-        # without an IMU every keyframe node is at its registered instant (a243844,
-        # Pipeline._node_at_ref): a checkpoint without this mark kept sweep-start ones at stamps
-        "kf_nodes_at_ref": np.array(1, np.int64),
         # the odometry's keyframe copies (refinement targets, failure watch) as the run has
         # them: without an IMU at the stamps, where the store's clouds are at mid-sweep
         "anchor_T": np.array([T for T, _ in anchors], np.float64).reshape(-1, 4, 4),
@@ -298,10 +295,11 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     node_dt = a.get("kf_node_dt", np.full((1, 2), np.nan))  # NaN: not known (older checkpoint)
     r.kf_node_dt = (None if np.isnan(node_dt).any() else
                     {int(k): float(dt) for k, dt in node_dt})
-    if (("unsettled" not in a or "kf_nodes_at_ref" not in a) and pipe.inertial is None
-            and meta["frames"]):
-        # before 8d17648 a sweep-end scan's keyframe was at its stamp, before a243844 a
-        # sweep-start one, now both at mid-sweep: a run continued across would mix the two
+    if "unsettled" not in a and pipe.inertial is None and meta["frames"]:
+        # before 8d17648 a sweep-end scan's keyframe was at its stamp, now at mid-sweep: a run
+        # continued across the change would mix the two. (A sweep-start one kept at its stamp
+        # before a243844 continues: each node's cloud is in its own frame and covariances.csv
+        # says each node's instant, and the odometry's copies are the store's clouds there.)
         raise InputError(state, f"made by an older lidar-slam (keyframes of runs without an "
                          f"IMU kept otherwise); {_RERUN}")
     for row in a.get("unsettled", np.zeros((0, 18))):
@@ -331,7 +329,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         ends = np.cumsum(a["anchor_counts"])
         for T, pts in zip(a["anchor_T"], np.split(a["anchor_points"], ends[:-1])):
             pipe.odometry.add_anchor(np.array(T), pts)
-    else:  # older (with an IMU: the same as the store's last non-empty keyframe clouds)
+    else:  # older: the store's last non-empty keyframe clouds (what the odometry had then)
         anchors = []
         for kf_id in range(len(r.store) - 1, -1, -1):  # keyframe clouds, oldest first
             if len(anchors) == pipe.odometry.n_anchors:

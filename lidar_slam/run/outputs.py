@@ -49,7 +49,7 @@ def write_loops(out_dir: Path, result: RunResult) -> dict:
 
 def node_to_frame(result: RunResult) -> dict[int, np.ndarray]:
     """Per keyframe whose graph node is not at its frame's stamp (keyframe 0, at the middle of
-    its sweep; without an IMU and with sweep-end stamps every keyframe: Pipeline._add_keyframe),
+    its sweep; without an IMU every keyframe of a scan with point times: Pipeline._node_at_ref),
     T_node_frame: the node to its frame at the stamp, along the run's odometry."""
     out: dict[int, np.ndarray] = {}
     if not len(result.store) or not result.odom_poses:
