@@ -311,11 +311,35 @@ def replay_candidates(run: Path, data: str, threshold: float) -> list[dict]:
                                  fitness=float(r.fitness)))
             det.index.add(k, pts, det.path_m(k), det.store.stamp_s(k))
     if rows:  # scored once: loop_precision_recall also finds the revisits of the whole sequence
+        # Each loop is between two keyframe nodes; the truth is at the frames' stamps. Where a
+        # node is not at its stamp (keyframe 0; without an IMU, mid-sweep), carry the loop to
+        # the stamps along the run's own node-to-stamp offsets, as loops.csv does.
+        to_frame = node_to_stamp(run)
+        Ts = [inverse(to_frame.get(m, np.eye(4))) @ T @ to_frame.get(q, np.eye(4))
+              for (q, m), T in zip(pairs, Ts)]
         correct = metrics.loop_precision_recall(np.array(pairs), np.array(Ts), gt,
                                                 min_frame_gap=0).correct
         for row, ok in zip(rows, correct):
             row["correct"] = bool(ok)
     return rows
+
+
+def node_to_stamp(run: Path) -> dict[int, np.ndarray]:
+    """Per input frame of a keyframe, T_node_frame: its graph node to the frame's stamp, from a
+    finished run's final poses (keyframes/map_poses.bin against poses_kitti.txt: a keyframe's
+    own frame is its node moved along the odometry); {} for a run without map poses."""
+    import json
+
+    from lidar_slam.map.keyframes import MAP_POSES, TABLE_DTYPE
+
+    path = run / "keyframes" / MAP_POSES
+    if not path.is_file():
+        return {}
+    M = np.fromfile(path, dtype="<f8").reshape(-1, 4, 4)
+    frames = np.fromfile(run / "keyframes" / "table.bin", dtype=TABLE_DTYPE)["frame_index"]
+    start = json.loads((run / "summary.json").read_text()).get("start", 0)
+    P = read_kitti_poses(run / "poses_kitti.txt")
+    return {int(f): inverse(T) @ P[int(f) - start] for T, f in zip(M, frames[: len(M)])}
 
 
 def simulate_gates(rows: list[dict], threshold: float, margin: float) -> tuple[int, int, int]:
