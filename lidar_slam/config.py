@@ -199,6 +199,13 @@ class KeyframeConfig(_Section):
     distance_m: Positive | Auto = "auto"
     rotation_deg: Positive = 15.0
     cloud_voxel_m: Positive = 0.5
+    # Without an IMU (every scan deskewed at constant velocity) a keyframe that falls due at a
+    # flick (its scan's registered pose, or the one before's, missed the constant-velocity
+    # prediction by more than this and twice the walk's median miss) is made at the first scan
+    # after it within this or that median, at most steady_wait_scans late (frontend.keyframes
+    # SteadyWait; docs/bank.md, Decisions, "a keyframe due at a flick waits"). 0: off.
+    steady_miss_deg: NonNegative = 1.0
+    steady_wait_scans: int = Field(4, ge=0)
 
 
 class ScanContextConfig(_Section):

@@ -19,10 +19,10 @@ import numpy as np
 from lidar_slam.config import SlamConfig
 from lidar_slam.frontend.deskew import DeskewedScan, Deskewer
 from lidar_slam.frontend.edge_information import EdgeInformation
-from lidar_slam.frontend.keyframes import KeyframeSelector
+from lidar_slam.frontend.keyframes import KeyframeSelector, SteadyWait
 from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geo import GeoReference
-from lidar_slam.geometry import interpolate, inverse, transform_points
+from lidar_slam.geometry import interpolate, inverse, rotation_angle_deg, transform_points
 from lidar_slam.loop import adapt
 from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import Scan
@@ -183,6 +183,9 @@ class Pipeline:
         # (_settle): (its position in the run, T_world_ref, ref_s), else None. Every frame after
         # it was predicted (not registered) and waits with it.
         self.unsettled: tuple[int, np.ndarray, float] | None = None
+        # constant-velocity deskew only: the last two registered poses and the last scan's miss
+        # of their prediction (deg), for the keyframe selector's steady scans (_miss_deg)
+        self.steady: tuple[list[np.ndarray], float] = ([], 0.0)
         self.frames_total: int | None = None  # scans the run will have, when known (pacing)
         self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
 
@@ -194,6 +197,7 @@ class Pipeline:
         if adaptive:
             log.info("loop settings: %s", adapt.describe(adaptive))
         self.keyframes = KeyframeSelector(self.cfg.keyframes)
+        self.steady_wait = SteadyWait(self.cfg.keyframes)
         if self.cfg.loop.enabled:
             from lidar_slam.loop.worker import LoopWorker
 
@@ -232,9 +236,13 @@ class Pipeline:
             r.odom_poses[0] = odom.T_world_first
         self._settle(deskewed, odom)
         r.seconds["odometry"] += time.perf_counter() - t0
-        is_kf = odom.registered and self.keyframes.is_keyframe(odom.T_world_scan)
+        due = odom.registered and self.keyframes.is_keyframe(odom.T_world_scan)
+        miss = self._miss_deg(deskewed, odom)
+        is_kf = odom.registered and self.steady_wait.take(due, miss)
         if is_kf or len(r.store) == 0:  # an empty first scan still needs a keyframe
-            self._add_keyframe(deskewed, odom)
+            self._add_keyframe(deskewed, odom, due or len(r.store) == 0)
+        elif due:  # the keyframe waits for a steady scan; the odometry's copy is made here
+            self._add_anchor(deskewed, odom, self._keyframe_cloud(deskewed)[0])
         r.indices.append(scan.index)
         r.stamps_s.append(scan.stamp_s)
         r.odom_poses.append(odom.T_world_scan)
@@ -245,6 +253,25 @@ class Pipeline:
             self.viz.log_scan(self, scan, transform_points(inverse(odom.T_ref_stamp),
                                                            deskewed.points), odom.T_world_scan,
                               is_kf)
+
+    def _miss_deg(self, deskewed: DeskewedScan, odom: OdometryResult) -> float | None:
+        """The larger of this scan's and the last one's miss (deg): the rotation by which the
+        registered pose missed the constant-velocity prediction from the two registered before
+        it; None with an IMU's or the input's own motion (not deskewed at constant velocity),
+        or before three scans registered in a row (a skipped scan starts again)."""
+        if self.inertial is not None or deskewed.motion is not None or not odom.registered:
+            self.steady = ([], 0.0)
+            return None
+        last, prev_miss = self.steady
+        T = odom.T_world_ref
+        miss = None
+        if len(last) == 2:
+            pred = last[1] @ inverse(last[0]) @ last[1]
+            m = float(rotation_angle_deg(inverse(pred) @ T))
+            miss = max(m, prev_miss)
+            prev_miss = m
+        self.steady = ([*last[-1:], T], prev_miss)
+        return miss
 
     def _extrapolated(self, deskewed: DeskewedScan, odom: OdometryResult) -> bool:
         """Whether the scan's pose at its stamp is the registered instant's (the sweep's middle)
@@ -303,19 +330,25 @@ class Pipeline:
             return len(self.result.odom_poses)
         return self.unsettled[0]
 
-    def _add_keyframe(self, deskewed: DeskewedScan, odom: OdometryResult) -> None:
-        """Keyframe cloud (one deskewed point per voxel within the map range) to the store; its
-        node to the back-end and its loop search to the worker. The cloud and node are at the
-        stamp, or without an IMU at the registered instant (the sweep's middle: _node_at_ref),
-        whose stamp pose is only extrapolated or interpolated from it: there a loop measures
-        what two registrations measured, not the stamp offsets' errors (on a legged trot 3-6
-        deg of tilt; office-handheld-mid360's shake loops up to 7 deg: docs/bank.md)."""
+    def _keyframe_cloud(self, deskewed: DeskewedScan) -> tuple[np.ndarray, np.ndarray | None]:
+        """A keyframe's cloud: one deskewed point per voxel within the map range (and their
+        intensities), in the registered instant's frame."""
         c = self.cfg
-        pts, inten = deskewed.cloud(c.keyframes.cloud_voxel_m, c.data.min_range_m,
-                                    min(c.data.max_range_m, c.map.max_range_m))
+        return deskewed.cloud(c.keyframes.cloud_voxel_m, c.data.min_range_m,
+                              min(c.data.max_range_m, c.map.max_range_m))
+
+    def _node(self, deskewed: DeskewedScan, odom: OdometryResult, pts: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, bool, tuple | None]:
+        """A keyframe of this scan: its node pose, its cloud in the node's frame, whether the
+        node is at the registered instant, and the odometry's own copy (pose, points) when it is
+        not the node's (None: the node's). The cloud and node are at the stamp, or without an
+        IMU at the registered instant (the sweep's middle: _node_at_ref), whose stamp pose is
+        only extrapolated or interpolated from it: there a loop measures what two registrations
+        measured, not the stamp offsets' errors (on a legged trot 3-6 deg of tilt;
+        office-handheld-mid360's shake loops up to 7 deg: docs/bank.md)."""
         T_node = odom.T_world_scan
         at_ref = self._node_at_ref(deskewed, odom)
-        anchor = None  # the odometry's own copy of the keyframe, when not the node's
+        anchor = None
         if at_ref:
             T_node = odom.T_world_ref
             if not self._extrapolated(deskewed, odom):
@@ -328,12 +361,32 @@ class Pipeline:
             # the first scan: no motion known yet, its stamp pose is its registered one
             at_ref = bool(np.array_equal(odom.T_ref_stamp, np.eye(4)))
         if not odom.registered:
-            pts, inten = pts[:0], None
+            pts = pts[:0]
+        return T_node, pts, at_ref, anchor
+
+    def _add_anchor(self, deskewed: DeskewedScan, odom: OdometryResult, pts: np.ndarray) -> None:
+        """The odometry's copy of a keyframe due at this scan, made when the keyframe itself
+        waits for a steady scan (SteadyWait): the same pose and points it would have kept."""
+        T_node, pts, _, anchor = self._node(deskewed, odom, pts)
+        if len(pts):
+            self.odometry.add_anchor(*(anchor or (np.array(T_node, dtype=np.float64),
+                                                  np.asarray(pts, dtype=np.float32))))
+
+    def _add_keyframe(self, deskewed: DeskewedScan, odom: OdometryResult,
+                      due: bool = True) -> None:
+        """Keyframe cloud to the store; its node to the back-end and its loop search to the
+        worker (_node); the odometry's copy of it when a keyframe fell due at this scan (due;
+        else it was made where it did, _add_anchor)."""
+        c = self.cfg
+        pts, inten = self._keyframe_cloud(deskewed)
+        T_node, pts, at_ref, anchor = self._node(deskewed, odom, pts)
+        if not odom.registered:
+            inten = None
         kf = self.result.store.add(deskewed.scan.index, T_node, pts, inten,
                                    deskewed.scan.stamp_s)
         if at_ref and deskewed.ref_s != 0.0 and self.result.kf_node_dt is not None:
             self.result.kf_node_dt[kf.id] = float(deskewed.ref_s)
-        if len(kf.points):
+        if due and len(kf.points):
             self.odometry.add_anchor(*(anchor or (kf.T_world_kf_odom, kf.points)))
         up = self.inertial.up_in_lidar() if self.inertial is not None else None
         if up is not None and odom.registered:

@@ -107,3 +107,28 @@ def test_keyframes_map_refuses_points_beyond_its_voxel_keys(tmp_path):
     store.add(0, np.eye(4), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0e5]]), None)
     with pytest.raises(ValueError, match="too far"):
         write_map(tmp_path / "map.ply", store, {0: np.eye(4)}, 0.2)
+
+
+def test_a_keyframe_due_at_a_flick_waits_for_a_steady_scan_but_not_past_the_next_one_due():
+    from lidar_slam.config import KeyframeConfig
+    from lidar_slam.frontend.keyframes import SteadyWait
+
+    w = SteadyWait(KeyframeConfig(steady_miss_deg=1.0, steady_wait_scans=3))
+    assert w.take(True, 0.5)  # steady: made where it fell due
+    assert not w.take(True, 2.0) and not w.take(False, 3.0)  # a flick: waits
+    assert w.take(False, 0.9) and not w.pending  # the first steady scan
+    # never more than steady_wait_scans scans late
+    w = SteadyWait(KeyframeConfig(steady_miss_deg=1.0, steady_wait_scans=3))
+    assert [w.take(d, 5.0) for d in (True, False, False, False)] == [False, False, False, True]
+    # one falling due makes the waiting one there, and waits in its place
+    assert not w.take(True, 5.0) and w.take(True, 5.0) and w.pending
+    assert w.take(False, None) and not w.pending  # a miss not measured: made at once
+    # a walk that always shakes by 2 deg: a flick is over twice that, steady within it
+    w = SteadyWait(KeyframeConfig(steady_miss_deg=1.0, steady_wait_scans=3))
+    assert not any(w.take(False, 2.0) for _ in range(30))
+    assert w.take(True, 3.9)  # its usual shake: made where it fell due
+    assert not w.take(True, 4.5) and not w.take(False, 2.5) and w.take(False, 1.9)
+    # not measured (an IMU deskews) or switched off: made where it fell due
+    assert SteadyWait(KeyframeConfig()).take(True, None)
+    assert SteadyWait(KeyframeConfig(steady_miss_deg=0.0)).take(True, 9.0)
+    assert not SteadyWait(KeyframeConfig()).take(False, 0.0)  # nothing due, nothing made

@@ -258,3 +258,68 @@ def test_an_empty_first_scan_says_the_auto_loop_settings_are_defaults(trot_end, 
     res.store.close()
     said = [r.getMessage() for r in caplog.records if "first scan has 0 points" in r.getMessage()]
     assert len(said) == 1 and "000000.bin" in said[0] and "defaults" in said[0], said
+
+
+def _misses_deg(poses: np.ndarray) -> np.ndarray:
+    """Per frame the rotation (deg) by which its pose missed the constant-velocity prediction
+    from the two before (0 for the first two)."""
+    from lidar_slam.geometry import rotation_angle_deg
+
+    out = np.zeros(len(poses))
+    for k in range(2, len(poses)):
+        pred = poses[k - 1] @ inverse(poses[k - 2]) @ poses[k - 1]
+        out[k] = rotation_angle_deg(inverse(pred) @ poses[k])
+    return out
+
+
+def test_keyframes_wait_for_steady_scans_and_the_odometry_does_not_move(handheld_walk):
+    """Without an IMU a keyframe falls due mid-flick; it is made at the first steady scan
+    after (keyframes.steady_miss_deg), at most steady_wait_scans late, while the odometry keeps
+    its own keyframe copies where they fell due: its poses are the same bytes."""
+    src = open_source(handheld_walk)
+    runs = {}
+    for bar in (0.0, 1.0):
+        cfg = load_config(None, {"loop": {"enabled": False},
+                                 "keyframes": {"steady_miss_deg": bar}})
+        runs[bar] = pipeline.run(src.scans(), cfg)
+    off, on = runs[0.0], runs[1.0]
+    assert np.array_equal(np.stack(off.odom_poses), np.stack(on.odom_poses))
+    due, made = off.store.table()["frame_index"], on.store.table()["frame_index"]
+    late = made - due[np.searchsorted(due, made, side="right") - 1]
+    assert late.max() <= load_config().keyframes.steady_wait_scans and (late > 0).sum() >= 3, late
+    miss = _misses_deg(np.stack(on.odom_poses))
+    assert np.median(miss[made]) < np.median(miss[due]), (miss[made], miss[due])
+    off.store.close()
+    on.store.close()
+
+
+def test_a_run_stopped_while_a_keyframe_waits_resumes_to_the_same_bytes(handheld_walk, tmp_path,
+                                                                       monkeypatch):
+    """A checkpoint keeps the keyframe waiting for a steady scan and the poses it is judged by:
+    stopped there and resumed, the run writes the bytes of the run never stopped."""
+    from lidar_slam.frontend.keyframes import SteadyWait
+    from lidar_slam.run import run_sequence
+
+    take, waiting = SteadyWait.take, []
+
+    def watched(self, due, miss):
+        made = take(self, due, miss)
+        waiting.append(self.pending)
+        return made
+
+    monkeypatch.setattr(SteadyWait, "take", watched)
+    files = ("poses_kitti.txt", "odometry_kitti.txt", "loops.csv", "covariances.csv")
+    lidar_only = {"imu": {"enabled": False}}
+    assert run_sequence(handheld_walk, tmp_path / "whole", overrides=lidar_only,
+                        progress=False).failure is None
+    monkeypatch.setattr(SteadyWait, "take", take)
+    n = next(i + 1 for i, w in enumerate(waiting) if w and i >= 30)
+    resume = stop_pipeline_after(monkeypatch, n)
+    assert run_sequence(handheld_walk, tmp_path / "run", overrides=lidar_only,
+                        progress=False).failure.exit_code == 130
+    resume()
+    resumed = run_sequence(handheld_walk, tmp_path / "run", overrides=lidar_only, resume=True,
+                           progress=False)
+    assert resumed.failure is None and resumed.summary["resumed_at_frame"] == n
+    for name in files:
+        assert (tmp_path / "run" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()

@@ -3,6 +3,8 @@ them is lidar_slam.map.keyframes)."""
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from lidar_slam.config import KeyframeConfig
@@ -28,4 +30,50 @@ class KeyframeSelector:
         if moved or turned:
             self.last = T_world_scan
             return True
+        return False
+
+
+class SteadyWait:
+    """Where each due keyframe (KeyframeSelector) is made. Without an IMU a distance or a turn is
+    reached in a flick, whose sweep the constant-velocity deskew bent: the keyframes were the
+    worst-placed scans of a hand-held walk (docs/bank.md, Decisions, "a keyframe due at a flick
+    waits"). So one falling due at a flick (a scan whose miss, the rotation in deg by which its
+    registered pose or the scan before's missed the constant-velocity prediction, is over both
+    steady_miss_deg and twice the median miss of the last RECENT scans) is made at the first
+    registered scan after it whose miss is within steady_miss_deg or that median, at most
+    steady_wait_scans late, and at the latest where the next one falls due (KeyframeConfig).
+    A trot's steady bounce is not a flick, a car never misses by a degree. The odometry's own
+    keyframe copies stay at the due scans (Pipeline._add_anchor), so its poses do not move."""
+
+    RECENT = 100  # scans whose median miss is the walk's usual one
+    MIN_RECENT = 10  # before that many, the median is not trusted (taken as 0)
+
+    def __init__(self, cfg: KeyframeConfig):
+        self.cfg = cfg
+        self.pending = False  # a keyframe fell due and is not made yet
+        self.waited = 0  # registered scans it has waited
+        self.recent: deque[float] = deque(maxlen=self.RECENT)  # misses of the last scans
+
+    def take(self, due: bool, miss_deg: float | None) -> bool:
+        """Whether this registered scan is a keyframe; due: one fell due at it (a keyframe
+        still waiting is made here, and this one waits in its place when the scan is a flick).
+        miss_deg None: not measured (an IMU deskews, or too few scans registered in a row)."""
+        bar = self.cfg.steady_miss_deg
+        if miss_deg is None or bar <= 0.0:
+            made = due or self.pending
+            self.pending, self.waited = False, 0
+            return made
+        self.recent.append(float(miss_deg))
+        usual = float(np.median(self.recent)) if len(self.recent) >= self.MIN_RECENT else 0.0
+        if due:
+            made = self.pending
+            self.pending = miss_deg > max(bar, 2.0 * usual)
+            self.waited = 0
+            return made or not self.pending
+        if not self.pending:
+            return False
+        if miss_deg <= max(bar, usual) or self.waited + 1 >= self.cfg.steady_wait_scans:
+            self.pending, self.waited = False, 0
+            return True
+        self.waited += 1
         return False

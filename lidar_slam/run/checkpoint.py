@@ -224,6 +224,12 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "odom_poses": np.asarray(r.odom_poses).reshape(-1, 4, 4),
         "frame_kf": np.asarray(r.frame_kf, np.int64),
         "selector_last": (np.eye(4) if pipe.keyframes.last is None else pipe.keyframes.last),
+        # keyframes due and waiting for a steady scan (SteadyWait), and the last registered
+        # poses and miss they are judged by (Pipeline.steady)
+        "steady_wait": np.array([float(pipe.steady_wait.pending), pipe.steady_wait.waited,
+                                 pipe.steady[1]], np.float64),
+        "steady_T": np.array(pipe.steady[0], np.float64).reshape(-1, 4, 4),
+        "steady_recent": np.array(pipe.steady_wait.recent, np.float64),
         "loop_ids": np.array([[c.query, c.match] for c in constraints], np.int64).reshape(-1, 2),
         "loop_T": np.array([c.T_match_query for c in constraints]).reshape(-1, 4, 4),
         "loop_info": np.array([c.information for c in constraints]).reshape(-1, 6, 6),
@@ -311,6 +317,11 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     pipe.start(meta["adaptive"])
     if meta["frames"]:
         pipe.keyframes.last = a["selector_last"]
+    if "steady_wait" in a:  # (a checkpoint from before it: nothing was waiting)
+        pending, waited, miss = a["steady_wait"]
+        pipe.steady_wait.pending, pipe.steady_wait.waited = bool(pending), int(waited)
+        pipe.steady = ([np.array(T) for T in a["steady_T"]], float(miss))
+        pipe.steady_wait.recent.extend(float(m) for m in a["steady_recent"])
     pipe.deskew.restore(meta["deskew"])
     deviations = np.fromfile(d / "deviations.bin", "<f8",
                              count=meta["deviations"] * 16).reshape(-1, 4, 4)
