@@ -43,7 +43,9 @@ class SteadyWait:
     registered scan after it whose miss is within steady_miss_deg or that median, at most
     steady_wait_scans late, and at the latest where the next one falls due (KeyframeConfig).
     A trot's steady bounce is not a flick, a car never misses by a degree. The odometry's own
-    keyframe copies stay at the due scans (Pipeline._add_anchor), so its poses do not move."""
+    keyframe copies stay at the due scans (Pipeline._add_anchor), so its poses do not move. One
+    still waiting when the input ends is not made: its last few frames stay with the keyframe
+    before, as frames after the last keyframe always have."""
 
     RECENT = 100  # scans whose median miss is the walk's usual one
     MIN_RECENT = 10  # before that many, the median is not trusted (taken as 0)
