@@ -77,6 +77,9 @@ class RunResult:
     # scans from constant velocity that also started from the last pose (odometry.
     # second_start_deg), and of them those it kept
     second_start: tuple[int, int] = (0, 0)
+    # keyframes made after waiting for a steady scan, and of them those made at the wait's end
+    # or the next one due instead (frontend.keyframes SteadyWait)
+    steady_wait: tuple[int, int] = (0, 0)
     # Without IMU factors in the final solve: the deskew's white position sd added to the
     # keyframes' covariances (backend.odom_information.deskew_white_scale): keyframes given 1 cm
     # or more, the largest (m); None where the solve had IMU factors (not added)
@@ -486,6 +489,8 @@ class Pipeline:
         r.refined_at_speed = o.n_refined_at_speed
         r.coarse_scans = o.n_coarse
         r.second_start = (o.n_second_tried, o.n_second_taken)
+        if self.keyframes is not None:
+            r.steady_wait = (self.steady_wait.late, self.steady_wait.not_steady)
         r.failure_resets = list(self.odometry.failures.resets)
         r.failure_episodes = list(self.odometry.failures.episodes)
         if r.failure_resets:

@@ -117,11 +117,13 @@ def test_a_keyframe_due_at_a_flick_waits_for_a_steady_scan_but_not_past_the_next
     assert w.take(True, 0.5)  # steady: made where it fell due
     assert not w.take(True, 2.0) and not w.take(False, 3.0)  # a flick: waits
     assert w.take(False, 0.9) and not w.pending  # the first steady scan
+    assert (w.late, w.not_steady) == (1, 0)  # summary.json keyframes_steady_wait
     # never more than steady_wait_scans scans late
     w = SteadyWait(KeyframeConfig(steady_miss_deg=1.0, steady_wait_scans=3))
     assert [w.take(d, 5.0) for d in (True, False, False, False)] == [False, False, False, True]
     # one falling due makes the waiting one there, and waits in its place
     assert not w.take(True, 5.0) and w.take(True, 5.0) and w.pending
+    assert (w.late, w.not_steady) == (2, 2)  # at the wait's end, and where the next fell due
     assert w.take(False, None) and not w.pending  # a miss not measured: made at once
     # a walk that always shakes by 2 deg: a flick is over twice that, steady within it
     w = SteadyWait(KeyframeConfig(steady_miss_deg=1.0, steady_wait_scans=3))

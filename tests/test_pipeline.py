@@ -287,6 +287,7 @@ def test_keyframes_wait_for_steady_scans_and_the_odometry_does_not_move(handheld
     due, made = off.store.table()["frame_index"], on.store.table()["frame_index"]
     late = made - due[np.searchsorted(due, made, side="right") - 1]
     assert late.max() <= load_config().keyframes.steady_wait_scans and (late > 0).sum() >= 3, late
+    assert on.steady_wait[0] >= (late > 0).sum() and off.steady_wait == (0, 0)
     miss = _misses_deg(np.stack(on.odom_poses))
     assert np.median(miss[made]) < np.median(miss[due]), (miss[made], miss[due])
     off.store.close()
@@ -321,5 +322,9 @@ def test_a_run_stopped_while_a_keyframe_waits_resumes_to_the_same_bytes(handheld
     resumed = run_sequence(handheld_walk, tmp_path / "run", overrides=lidar_only, resume=True,
                            progress=False)
     assert resumed.failure is None and resumed.summary["resumed_at_frame"] == n
+    import json
+
+    counts = json.loads((tmp_path / "whole" / "summary.json").read_text())["keyframes_steady_wait"]
+    assert resumed.summary["keyframes_steady_wait"] == counts and counts["late"] > 0, counts
     for name in files:
         assert (tmp_path / "run" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()

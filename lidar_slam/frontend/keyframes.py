@@ -55,6 +55,8 @@ class SteadyWait:
         self.pending = False  # a keyframe fell due and is not made yet
         self.waited = 0  # registered scans it has waited
         self.recent: deque[float] = deque(maxlen=self.RECENT)  # misses of the last scans
+        self.late = 0  # keyframes made after a wait (summary.json keyframes_steady_wait)
+        self.not_steady = 0  # of them, made at the limit or the next one due, not steady
 
     def take(self, due: bool, miss_deg: float | None) -> bool:
         """Whether this registered scan is a keyframe; due: one fell due at it (a keyframe
@@ -67,15 +69,22 @@ class SteadyWait:
             return made
         self.recent.append(float(miss_deg))
         usual = float(np.median(self.recent)) if len(self.recent) >= self.MIN_RECENT else 0.0
+        steady = miss_deg <= max(bar, usual)
         if due:
             made = self.pending
+            self._count(made, steady)
             self.pending = miss_deg > max(bar, 2.0 * usual)
             self.waited = 0
             return made or not self.pending
         if not self.pending:
             return False
-        if miss_deg <= max(bar, usual) or self.waited + 1 >= self.cfg.steady_wait_scans:
+        if steady or self.waited + 1 >= self.cfg.steady_wait_scans:
+            self._count(True, steady)
             self.pending, self.waited = False, 0
             return True
         self.waited += 1
         return False
+
+    def _count(self, made_late: bool, steady: bool) -> None:
+        self.late += int(made_late)
+        self.not_steady += int(made_late and not steady)

@@ -227,7 +227,8 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         # keyframes due and waiting for a steady scan (SteadyWait), and the last registered
         # poses and miss they are judged by (Pipeline.steady)
         "steady_wait": np.array([float(pipe.steady_wait.pending), pipe.steady_wait.waited,
-                                 pipe.steady[1]], np.float64),
+                                 pipe.steady[1], pipe.steady_wait.late,
+                                 pipe.steady_wait.not_steady], np.float64),
         "steady_T": np.array(pipe.steady[0], np.float64).reshape(-1, 4, 4),
         "steady_recent": np.array(pipe.steady_wait.recent, np.float64),
         "loop_ids": np.array([[c.query, c.match] for c in constraints], np.int64).reshape(-1, 2),
@@ -318,8 +319,10 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     if meta["frames"]:
         pipe.keyframes.last = a["selector_last"]
     if "steady_wait" in a:  # (a checkpoint from before it: nothing was waiting)
-        pending, waited, miss = a["steady_wait"]
+        # (283818c's had no counts)
+        pending, waited, miss, late, not_steady = [*a["steady_wait"], 0.0, 0.0][:5]
         pipe.steady_wait.pending, pipe.steady_wait.waited = bool(pending), int(waited)
+        pipe.steady_wait.late, pipe.steady_wait.not_steady = int(late), int(not_steady)
         pipe.steady = ([np.array(T) for T in a["steady_T"]], float(miss))
         pipe.steady_wait.recent.extend(float(m) for m in a["steady_recent"])
     pipe.deskew.restore(meta["deskew"])

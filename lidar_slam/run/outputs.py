@@ -241,6 +241,10 @@ def write_run(out_dir: Path, result: RunResult, cfg: SlamConfig, ground_truth: n
     summary["odometry_coarse_scans"] = result.coarse_scans
     summary["odometry_second_start"] = {"tried": result.second_start[0],
                                         "taken": result.second_start[1]}
+    # lidar only: keyframes due at a flick made at a later, steady scan, and of them those made
+    # at the wait's end or where the next fell due instead (keyframes.steady_miss_deg)
+    summary["keyframes_steady_wait"] = {"late": result.steady_wait[0],
+                                        "not_steady": result.steady_wait[1]}
     # without IMU factors in the final solve: keyframes whose covariance the deskew's white sd
     # widened by 1 cm or more, the largest (backend.odom_information.deskew_white_scale); null
     # with them (not added)
