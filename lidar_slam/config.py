@@ -203,7 +203,7 @@ class KeyframeConfig(_Section):
     # flick (its scan's registered pose, or the one before's, missed the constant-velocity
     # prediction by more than this and twice the walk's median miss) is made at the first scan
     # after it within this or that median, at most steady_wait_scans late (frontend.keyframes
-    # SteadyWait; docs/bank.md, Decisions, "a keyframe due at a flick waits"). 0: off.
+    # SteadyWait; docs/bank.md, Decisions, "a keyframe due at a flick waits"). 0 (either): off.
     steady_miss_deg: NonNegative = 1.0
     steady_wait_scans: int = Field(4, ge=0)
 

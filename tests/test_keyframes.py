@@ -125,6 +125,7 @@ def test_a_keyframe_due_at_a_flick_waits_for_a_steady_scan_but_not_past_the_next
     assert not w.take(True, 5.0) and w.take(True, 5.0) and w.pending
     assert (w.late, w.not_steady) == (2, 2)  # at the wait's end, and where the next fell due
     assert w.take(False, None) and not w.pending  # a miss not measured: made at once
+    assert (w.late, w.not_steady) == (3, 3)  # counted, as not steady
     # a walk that always shakes by 2 deg: a flick is over twice that, steady within it
     w = SteadyWait(KeyframeConfig(steady_miss_deg=1.0, steady_wait_scans=3))
     assert not any(w.take(False, 2.0) for _ in range(30))
@@ -133,4 +134,5 @@ def test_a_keyframe_due_at_a_flick_waits_for_a_steady_scan_but_not_past_the_next
     # not measured (an IMU deskews) or switched off: made where it fell due
     assert SteadyWait(KeyframeConfig()).take(True, None)
     assert SteadyWait(KeyframeConfig(steady_miss_deg=0.0)).take(True, 9.0)
+    assert SteadyWait(KeyframeConfig(steady_wait_scans=0)).take(True, 9.0)
     assert not SteadyWait(KeyframeConfig()).take(False, 0.0)  # nothing due, nothing made

@@ -63,7 +63,10 @@ class SteadyWait:
         still waiting is made here, and this one waits in its place when the scan is a flick).
         miss_deg None: not measured (an IMU deskews, or too few scans registered in a row)."""
         bar = self.cfg.steady_miss_deg
-        if miss_deg is None or bar <= 0.0:
+        if miss_deg is None or bar <= 0.0 or self.cfg.steady_wait_scans == 0:
+            # not measured, or off: one waiting (a skipped scan restarts the misses) is made
+            # here, unmeasured, with the one due here
+            self._count(self.pending, False)
             made = due or self.pending
             self.pending, self.waited = False, 0
             return made

@@ -318,7 +318,7 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
     pipe.start(meta["adaptive"])
     if meta["frames"]:
         pipe.keyframes.last = a["selector_last"]
-    if "steady_wait" in a:  # (a checkpoint from before it: nothing was waiting)
+    if "steady_wait" in a:  # (always since 283818c; run.json's config check refuses older)
         # (283818c's had no counts)
         pending, waited, miss, late, not_steady = [*a["steady_wait"], 0.0, 0.0][:5]
         pipe.steady_wait.pending, pipe.steady_wait.waited = bool(pending), int(waited)
