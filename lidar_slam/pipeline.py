@@ -22,7 +22,7 @@ from lidar_slam.frontend.edge_information import EdgeInformation
 from lidar_slam.frontend.keyframes import KeyframeSelector, SteadyWait
 from lidar_slam.frontend.odometry import Odometry, OdometryResult, VoxelSelector
 from lidar_slam.geo import GeoReference
-from lidar_slam.geometry import interpolate, inverse, rotation_angle_deg, transform_points
+from lidar_slam.geometry import interpolate, inverse, transform_points
 from lidar_slam.loop import adapt
 from lidar_slam.map.keyframes import KeyframeStore
 from lidar_slam.types import Scan
@@ -186,9 +186,6 @@ class Pipeline:
         # (_settle): (its position in the run, T_world_ref, ref_s), else None. Every frame after
         # it was predicted (not registered) and waits with it.
         self.unsettled: tuple[int, np.ndarray, float] | None = None
-        # constant-velocity deskew only: the last two registered poses and the last scan's miss
-        # of their prediction (deg), for the keyframe selector's steady scans (_miss_deg)
-        self.steady: tuple[list[np.ndarray], float] = ([], 0.0)
         self.frames_total: int | None = None  # scans the run will have, when known (pacing)
         self.adaptive: dict[str, float] | None = None  # the "auto" settings, once fixed
 
@@ -240,12 +237,15 @@ class Pipeline:
         self._settle(deskewed, odom)
         r.seconds["odometry"] += time.perf_counter() - t0
         due = odom.registered and self.keyframes.is_keyframe(odom.T_world_scan)
-        miss = self._miss_deg(deskewed, odom)
+        # the miss of the constant-velocity prediction: measured where it deskewed the scan
+        cv = self.inertial is None and deskewed.motion is None and odom.registered
+        miss = self.steady_wait.miss_deg(odom.T_world_ref if cv else None)
         is_kf = odom.registered and self.steady_wait.take(due, miss)
         if is_kf or len(r.store) == 0:  # an empty first scan still needs a keyframe
             self._add_keyframe(deskewed, odom, due or len(r.store) == 0)
         elif due:  # the keyframe waits for a steady scan; the odometry's copy is made here
-            self._add_anchor(deskewed, odom, self._keyframe_cloud(deskewed)[0])
+            T_node, pts, _, anchor = self._node(deskewed, odom, self._keyframe_cloud(deskewed)[0])
+            self._add_anchor(T_node, pts, anchor)
         r.indices.append(scan.index)
         r.stamps_s.append(scan.stamp_s)
         r.odom_poses.append(odom.T_world_scan)
@@ -256,25 +256,6 @@ class Pipeline:
             self.viz.log_scan(self, scan, transform_points(inverse(odom.T_ref_stamp),
                                                            deskewed.points), odom.T_world_scan,
                               is_kf)
-
-    def _miss_deg(self, deskewed: DeskewedScan, odom: OdometryResult) -> float | None:
-        """The larger of this scan's and the last one's miss (deg): the rotation by which the
-        registered pose missed the constant-velocity prediction from the two registered before
-        it; None with an IMU's or the input's own motion (not deskewed at constant velocity),
-        or before three scans registered in a row (a skipped scan starts again)."""
-        if self.inertial is not None or deskewed.motion is not None or not odom.registered:
-            self.steady = ([], 0.0)
-            return None
-        last, prev_miss = self.steady
-        T = odom.T_world_ref
-        miss = None
-        if len(last) == 2:
-            pred = last[1] @ inverse(last[0]) @ last[1]
-            m = float(rotation_angle_deg(inverse(pred) @ T))
-            miss = max(m, prev_miss)
-            prev_miss = m
-        self.steady = ([*last[-1:], T], prev_miss)
-        return miss
 
     def _extrapolated(self, deskewed: DeskewedScan, odom: OdometryResult) -> bool:
         """Whether the scan's pose at its stamp is the registered instant's (the sweep's middle)
@@ -367,10 +348,9 @@ class Pipeline:
             pts = pts[:0]
         return T_node, pts, at_ref, anchor
 
-    def _add_anchor(self, deskewed: DeskewedScan, odom: OdometryResult, pts: np.ndarray) -> None:
-        """The odometry's copy of a keyframe due at this scan, made when the keyframe itself
-        waits for a steady scan (SteadyWait): the same pose and points it would have kept."""
-        T_node, pts, _, anchor = self._node(deskewed, odom, pts)
+    def _add_anchor(self, T_node: np.ndarray, pts: np.ndarray, anchor: tuple | None) -> None:
+        """The odometry's copy of a keyframe due at this scan (_node's anchor, else the node
+        itself), when it has points."""
         if len(pts):
             self.odometry.add_anchor(*(anchor or (np.array(T_node, dtype=np.float64),
                                                   np.asarray(pts, dtype=np.float32))))
@@ -389,8 +369,8 @@ class Pipeline:
                                    deskewed.scan.stamp_s)
         if at_ref and deskewed.ref_s != 0.0 and self.result.kf_node_dt is not None:
             self.result.kf_node_dt[kf.id] = float(deskewed.ref_s)
-        if due and len(kf.points):
-            self.odometry.add_anchor(*(anchor or (kf.T_world_kf_odom, kf.points)))
+        if due:
+            self._add_anchor(kf.T_world_kf_odom, kf.points, anchor)
         up = self.inertial.up_in_lidar() if self.inertial is not None else None
         if up is not None and odom.registered:
             self.result.kf_up[kf.id] = odom.T_ref_stamp[:3, :3].T @ up

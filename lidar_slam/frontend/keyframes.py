@@ -8,7 +8,7 @@ from collections import deque
 import numpy as np
 
 from lidar_slam.config import KeyframeConfig
-from lidar_slam.geometry import relative, rotation_angle_deg
+from lidar_slam.geometry import inverse, relative, rotation_angle_deg
 
 
 class KeyframeSelector:
@@ -57,6 +57,24 @@ class SteadyWait:
         self.recent: deque[float] = deque(maxlen=self.RECENT)  # misses of the last scans
         self.late = 0  # keyframes made after a wait (summary.json keyframes_steady_wait)
         self.not_steady = 0  # of them, made at the limit or the next one due, not steady
+        self.last: list[np.ndarray] = []  # the last two registered poses (miss_deg)
+        self.last_miss = 0.0  # the last one's own miss (deg)
+
+    def miss_deg(self, T_world_ref: np.ndarray | None) -> float | None:
+        """The larger of this scan's and the last one's miss (deg): the rotation by which its
+        registered pose T_world_ref missed the constant-velocity prediction from the two
+        registered before it. T_world_ref None (not registered, or not deskewed at constant
+        velocity): None, and the next scans start again; None also before three in a row."""
+        if T_world_ref is None:
+            self.last, self.last_miss = [], 0.0
+            return None
+        miss = None
+        if len(self.last) == 2:
+            pred = self.last[1] @ inverse(self.last[0]) @ self.last[1]
+            m = float(rotation_angle_deg(inverse(pred) @ T_world_ref))
+            miss, self.last_miss = max(m, self.last_miss), m
+        self.last = [*self.last[-1:], T_world_ref]
+        return miss
 
     def take(self, due: bool, miss_deg: float | None) -> bool:
         """Whether this registered scan is a keyframe; due: one fell due at it (a keyframe

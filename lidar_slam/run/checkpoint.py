@@ -225,11 +225,11 @@ def save(run_dir: Path, pipe: Pipeline, loops_applied_upto: int) -> None:
         "frame_kf": np.asarray(r.frame_kf, np.int64),
         "selector_last": (np.eye(4) if pipe.keyframes.last is None else pipe.keyframes.last),
         # keyframes due and waiting for a steady scan (SteadyWait), and the last registered
-        # poses and miss they are judged by (Pipeline.steady)
+        # poses and miss they are judged by
         "steady_wait": np.array([float(pipe.steady_wait.pending), pipe.steady_wait.waited,
-                                 pipe.steady[1], pipe.steady_wait.late,
+                                 pipe.steady_wait.last_miss, pipe.steady_wait.late,
                                  pipe.steady_wait.not_steady], np.float64),
-        "steady_T": np.array(pipe.steady[0], np.float64).reshape(-1, 4, 4),
+        "steady_T": np.array(pipe.steady_wait.last, np.float64).reshape(-1, 4, 4),
         "steady_recent": np.array(pipe.steady_wait.recent, np.float64),
         "loop_ids": np.array([[c.query, c.match] for c in constraints], np.int64).reshape(-1, 2),
         "loop_T": np.array([c.T_match_query for c in constraints]).reshape(-1, 4, 4),
@@ -323,7 +323,8 @@ def restore(run_dir: Path, pipe: Pipeline) -> int:
         pending, waited, miss, late, not_steady = [*a["steady_wait"], 0.0, 0.0][:5]
         pipe.steady_wait.pending, pipe.steady_wait.waited = bool(pending), int(waited)
         pipe.steady_wait.late, pipe.steady_wait.not_steady = int(late), int(not_steady)
-        pipe.steady = ([np.array(T) for T in a["steady_T"]], float(miss))
+        pipe.steady_wait.last = [np.array(T) for T in a["steady_T"]]
+        pipe.steady_wait.last_miss = float(miss)
         pipe.steady_wait.recent.extend(float(m) for m in a["steady_recent"])
     pipe.deskew.restore(meta["deskew"])
     deviations = np.fromfile(d / "deviations.bin", "<f8",
