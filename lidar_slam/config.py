@@ -412,6 +412,8 @@ class LoopConfig(_Section):
 
 
 class MapConfig(_Section):
+    # map.ply is the keyframe clouds (one point per keyframes.cloud_voxel_m voxel) merged at
+    # this voxel: it can thin them, not make the map denser than they are
     voxel_size_m: Positive = 0.2
     max_range_m: Positive = 60.0
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -204,3 +205,73 @@ def test_overwrite_deletes_a_linked_output_folder_as_a_link(tmp_path):
     (out / "keyframes").symlink_to(elsewhere)
     prepare_out_dir(out, RUN_OUTPUTS, overwrite=True)
     assert list(out.iterdir()) == [] and (elsewhere / "points.bin").read_text() == "keep"
+
+
+def test_an_rrd_on_an_input_or_an_existing_file_is_refused_and_nothing_is_written(tmp_path):
+    """--rrd naming a scan replaced it with a recording (the next run stopped there); an
+    existing file was replaced without a word. Now --out's rules: one line, nothing touched."""
+    data = sample_copy(tmp_path)
+    scan = sorted((data / "velodyne").glob("*.bin"))[2]
+    before = scan.read_bytes()
+    proc = lidar_slam("run", data, "--out", tmp_path / "o", *FEW, "--rrd", scan)
+    assert_one_line_error(proc, f"{scan}: --rrd is an input of the run")
+    assert scan.read_bytes() == before and not (tmp_path / "o").exists()
+    old = tmp_path / "notes.txt"
+    old.write_text("mine")
+    proc = lidar_slam("run", data, "--out", tmp_path / "o", *FEW, "--rrd", old)
+    assert_one_line_error(proc, f"{old}: --rrd already exists; pass --overwrite")
+    assert old.read_text() == "mine"
+
+
+def test_an_out_in_the_folder_the_scans_are_read_from_is_refused(tmp_path):
+    """--out DATA/velodyne wrote map.ply among the scans, read back as a scan by the next run."""
+    data = sample_copy(tmp_path)
+    proc = lidar_slam("run", data, "--out", data / "velodyne", *FEW, "--overwrite")
+    assert_one_line_error(proc, f"{data / 'velodyne'}: --out is the folder the input's scans are "
+                                "read from")
+    assert not (data / "velodyne" / "map.ply").exists()
+
+
+def _plain_folder(tmp_path: Path, n: int = 4) -> Path:
+    folder = tmp_path / "plain"
+    folder.mkdir()
+    for f in sorted((SAMPLE / "velodyne").glob("*.bin"))[:n]:
+        shutil.copy(f, folder / f.name)
+    return folder
+
+
+def test_a_link_to_nothing_among_the_scans_is_one_line_naming_it(tmp_path):
+    folder = _plain_folder(tmp_path, 2)
+    (folder / "000009.bin").symlink_to(tmp_path / "gone.bin")
+    proc = lidar_slam("run", folder, "--out", tmp_path / "o", "--no-loops")
+    assert_one_line_error(proc, f"{folder / '000009.bin'}: a link to {tmp_path / 'gone.bin'}, "
+                                "which does not exist")
+
+
+def test_scan_stamps_in_ns_are_converted_with_a_warning(tmp_path):
+    data = sample_copy(tmp_path)
+    t0 = 1_630_577_808_570_040_832
+    (data / "times.txt").write_text("".join(f"{t0 + k * 200_000_000}\n" for k in range(4)))
+    proc = lidar_slam("run", data, "--out", tmp_path / "o", *FEW)
+    assert proc.returncode == 0, proc.stderr
+    assert "stamps read as ns" in proc.stderr and "converted to s" in proc.stderr
+    stamps = np.loadtxt(tmp_path / "o" / "poses_tum.txt")[:, 0]
+    assert np.allclose(np.diff(stamps), 0.2, atol=1e-6) and abs(stamps[0] - t0 * 1e-9) < 1e-3
+    # in ms, 5 Hz: 200 s apart read as s, which a survey's scans can be: said, not converted
+    (data / "times.txt").write_text("".join(f"{k * 200}\n" for k in range(4)))
+    proc = lidar_slam("run", data, "--out", tmp_path / "o2", *FEW)
+    assert proc.returncode == 0, proc.stderr
+    assert "scans 200 s apart (median): taken as seconds" in proc.stderr
+
+
+def test_a_folder_with_scans_and_a_scans_subfolder_says_which_it_reads(tmp_path):
+    folder = _plain_folder(tmp_path, 3)
+    (folder / "scans").mkdir()
+    for f in sorted((SAMPLE / "velodyne").glob("*.bin"))[:4]:
+        shutil.copy(f, folder / "scans" / f.name)
+    proc = lidar_slam("run", folder, "--out", tmp_path / "o", "--no-loops", "--n-scans", "5")
+    assert proc.returncode == 0, proc.stderr
+    assert "3 scans in the folder itself are read, not the 4 in its scans/" in proc.stderr
+    assert "--n-scans 5 from --start 0: only 3 scans there" in proc.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["n_scans"] == 5 and summary["frames_requested"] == 3

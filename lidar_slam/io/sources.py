@@ -10,6 +10,7 @@ know which kind of input it reads.
 from __future__ import annotations
 
 import logging
+import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -68,8 +69,17 @@ def natural_key(name: str) -> list:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
-def _scan_files(folder: Path) -> list[Path]:
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES]
+def _scan_files(folder: Path, strict: bool = True) -> list[Path]:
+    """The scan files in folder, naturally sorted; strict: a link to nothing named as a scan is
+    an error (not a scan dropped in silence)."""
+    named = [p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES]
+    broken = strict and sorted((p for p in named if p.is_symlink() and not p.exists()),
+                               key=lambda p: natural_key(p.name))
+    if broken:  # dropped, each scan after it would take the stamp of the one before
+        raise InputError(broken[0], f"a link to {os.readlink(broken[0])}, which does not exist"
+                                    + (f" ({len(broken)} such scans here)" if len(broken) > 1
+                                       else ""))
+    files = [p for p in named if p.is_file()]
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
@@ -83,6 +93,35 @@ def _load_stamps(path: Path, n: int, files: list[Path] | None = None) -> np.ndar
         stamps = _lines_of(path, stamps, files, "stamps")
     if len(stamps) != n:
         raise InputError(path, f"has {len(stamps)} stamps for {n} scans")
+    return _stamps_in_s(path, stamps)
+
+
+SCAN_RATES_HZ = (0.5, 200.0)  # a scanning lidar's sweep rate, in any unit of its stamps
+SLOW_SCANS_S = 10.0  # scans further apart than this (median) are said to be
+
+
+def _stamps_in_s(path: Path, stamps: np.ndarray) -> np.ndarray:
+    """A times file's stamps in s. Scans an hour or more apart (median) are stamps in ms, us or
+    ns when one of those gives a sweep rate in SCAN_RATES_HZ: converted with one warning (read
+    as s, ns stamps made the poses' stamps 1e18 and every velocity 0). Ten seconds or more
+    apart, said in one warning (a survey's scans can be; 10 Hz in ms is 100 s in s)."""
+    from lidar_slam.io.imu_units import STAMP_UNITS
+
+    steps = np.diff(stamps)
+    if not len(steps):
+        return stamps
+    spacing = float(np.median(steps))
+    if spacing >= 3600.0:
+        fits = [(scale, unit) for scale, unit in STAMP_UNITS[1:]
+                if SCAN_RATES_HZ[0] <= 1.0 / (spacing * scale) <= SCAN_RATES_HZ[1]]
+        if fits:
+            scale, unit = fits[0]
+            log.warning("%s: stamps read as %s (median spacing %.6g: %.3g Hz in %s); converted "
+                        "to s", path, unit, spacing, 1.0 / (spacing * scale), unit)
+            return stamps * scale
+    if spacing >= SLOW_SCANS_S:
+        log.warning("%s: scans %.6g s apart (median): taken as seconds; if the file is in ms, "
+                    "us or ns, convert it to s", path, spacing)
     return stamps
 
 
@@ -128,7 +167,7 @@ def _subfolders_with_scans(root: Path) -> list[tuple[str, int]]:
     out = []
     for sub in sorted(p for p in root.iterdir() if p.is_dir()):
         try:
-            n = len(_scan_files(sub))
+            n = len(_scan_files(sub, strict=False))
         except OSError:
             continue
         if n:
@@ -175,6 +214,10 @@ class FolderSource(StreamsBesideScans):
         files = _scan_files(root)
         if not files and (root / "scans").is_dir():
             files = _scan_files(root / "scans")
+        elif (root / "scans").is_dir() and (
+                n_sub := len(_scan_files(root / "scans", strict=False))):
+            log.warning("%s: %d scans in the folder itself are read, not the %d in its scans/ "
+                        "(move the folder's own away to read those)", root, len(files), n_sub)
         if not files:
             bags = sorted(p.name for p in root.iterdir() if p.suffix in (".bag", ".mcap", ".db3"))
             hint = (f"; a recording is here: pass the file itself ({root / bags[0]})" if bags

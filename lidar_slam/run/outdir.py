@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from pathlib import Path
 
 from lidar_slam.errors import RunFailed
+
+log = logging.getLogger("lidar_slam")
 
 # Every file and folder `run` writes into --out: --overwrite deletes these and nothing else.
 RUN_OUTPUTS = ("poses_kitti.txt", "poses_tum.txt", "odometry_kitti.txt", "map.ply", "loops.csv",
@@ -82,6 +85,34 @@ def refuse_input_as_out(out: Path, inputs: dict[str, Path | None]) -> None:
                             f"another folder")
 
 
+def refuse_out_among_scans(out: Path, files: list[Path] | None) -> None:
+    """--out may not be a folder the input's scans are read from (a KITTI sequence's velodyne/,
+    a folder's scans/): the outputs written there (map.ply) would be read back as scans next
+    time. files: the input's scan files (None for a recording)."""
+    if files is None or len(files) < 2:  # a recording, or one scan file: nothing read back
+        return
+    if out.resolve() in {Path(f).resolve().parent for f in files}:
+        raise RunFailed(f"{out}: --out is the folder the input's scans are read from; write the "
+                        f"outputs to another folder")
+
+
+def check_rrd(rrd: Path | None, out: Path, inputs: list[Path], overwrite: bool,
+              resume: bool) -> None:
+    """--rrd FILE: never an input (a scan, the input itself) nor a folder, and an existing file
+    only with --overwrite (or --resume: the killed run's recording is made again), as --out."""
+    if rrd is None:
+        return
+    r = rrd.resolve()
+    if any(r == Path(p).resolve() for p in inputs):
+        raise RunFailed(f"{rrd}: --rrd is an input of the run; record to another file")
+    if rrd.is_dir():
+        raise RunFailed(f"{rrd}: --rrd is a folder; give the recording's file name (run.rrd)")
+    if out.resolve() in r.parents and r.relative_to(out.resolve()).parts[0] in RUN_OUTPUTS:
+        raise RunFailed(f"{rrd}: --rrd is one of the run's own outputs; record to another file")
+    if rrd.exists() and not (overwrite or resume):
+        raise RunFailed(f"{rrd}: --rrd already exists; pass --overwrite to replace it")
+
+
 def discard_run(out: Path, created: bool) -> None:
     """Remove what a run that produced no frame wrote (and --out itself if the run made it), so
     no 0-frame run folder is left behind."""
@@ -104,4 +135,7 @@ def scan_range(path: Path, start: int, n_scans: int | None, available: int,
     if start >= available:
         raise RunFailed(f"{path}: --start {start} is past the last {unit} "
                         f"({f'{available} {unit}s' if count is None else count})")
+    if n_scans is not None and n_scans > available - start:
+        log.warning("%s: --n-scans %d from --start %d: only %d %ss there; reading those", path,
+                    n_scans, start, available - start, unit)
     return available - start if n_scans is None else min(n_scans, available - start)

@@ -21,9 +21,11 @@ import numpy as np
 from lidar_slam.errors import EXIT_INTERRUPTED, LidarSlamError, RunFailed
 from lidar_slam.run.outdir import (
     RUN_OUTPUTS,
+    check_rrd,
     discard_run,
     prepare_out_dir,
     refuse_input_as_out,
+    refuse_out_among_scans,
     scan_range,
 )
 from lidar_slam.run.progress import progress as make_progress
@@ -281,6 +283,9 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     cfg = load_config(config, overrides)
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=cfg.data.kitti_vertical_correction, meta=meta)
+    scan_files = getattr(source, "files", None)
+    refuse_out_among_scans(out, scan_files)
+    check_rrd(rrd, out, [data, *(scan_files or [])], overwrite, resume)
     total = scan_range(data, start, n_scans, len(source))
     own_mounting, mounting_from = _mounting_from_input(cfg, source, imu_topic)
     resolved, inertial = _load_inertial(source, own_mounting, imu_topic, gnss_topic, start,
@@ -337,7 +342,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
                             **({} if pipe.inertial is None
                                else {"imu_frontend": pipe.inertial.summary(),
                                      "imu_check": pipe.inertial.check.summary()}),
-                            "start": start,
+                            "start": start, "n_scans": n_scans,  # as asked (None: all)
                             "resumed_at_frame": done, "version": __version__,
                             "git_commit": git_commit()}
                 summary = write_run(out, result, cfg, source.ground_truth, time.perf_counter() - t0,
