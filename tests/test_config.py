@@ -98,6 +98,8 @@ def test_an_empty_config_file_warns_and_gives_the_defaults(tmp_path, text, caplo
     ("odometry: {max_points_per_voxel: many}\n",
      ["odometry.max_points_per_voxel: Input should be a valid integer", "(got 'many')"]),
     ("odometry: {voxel_size_m: .inf}\n", ["odometry.voxel_size_m: Input should be a finite"]),
+    ("odometry: {voxel_size_m: 0.0001}\n",  # every point its own voxel: a wrong path, unsaid
+     ["odometry.voxel_size_m: Input should be greater than or equal to 0.01", "(got 0.0001)"]),
     ("odometry: {max_num_iterations: 10000000000}\n", ["odometry.max_num_iterations"]),
     ("loop: 5\n", ["loop: Input should be a mapping of settings (got 5)"]),
     ("keyframes: {distance_m: true}\n", ["keyframes.distance_m: true is not a number"]),
