@@ -25,6 +25,11 @@ def _pyproj():
     return pyproj
 
 
+def require_pyproj() -> None:
+    """RunFailed, in one line, when the geo extra is not installed."""
+    _pyproj()
+
+
 @functools.lru_cache(maxsize=8)
 def _transformer(lat0: float, lon0: float, h0: float):
     Transformer = _pyproj().Transformer

@@ -275,3 +275,35 @@ def test_a_folder_with_scans_and_a_scans_subfolder_says_which_it_reads(tmp_path)
     assert "--n-scans 5 from --start 0: only 3 scans there" in proc.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["n_scans"] == 5 and summary["frames_requested"] == 3
+
+
+@pytest.mark.parametrize("args,said", [
+    # 1e-20 overflowed the voxel indices and kept 2214 of 99,659 points; inf kept one
+    (("export", "RUN", "--out", "OUT/m.ply", "--voxel", "1e-20"),
+     "--voxel must be a finite size of at least 0.001 m, got 1e-20"),
+    (("export", "RUN", "--out", "OUT/m.ply", "--voxel", "inf"), "--voxel must be a finite"),
+    # inf crashed ("internal error: cannot convert float NaN to integer")
+    (("export", "RUN", "--occupancy", "--out", "OUT", "--resolution", "inf"),
+     "--resolution must be a finite size"),
+    (("export", "RUN", "--occupancy", "--out", "OUT", "--band", "0.3,inf"),
+     "--band: need 0 <= LOW < HIGH, both finite"),
+    (("localize", "RUN", "--map", "RUN", "--out", "OUT", "--initial-pose", "1,2,3,nan"),
+     "--initial-pose: expected x,y,z,yaw, finite"),
+])
+def test_a_size_or_pose_that_is_not_finite_is_one_line(tmp_path, args, said):
+    args = [str(a).replace("RUN", str(tmp_path / "run")).replace("OUT", str(tmp_path / "out"))
+            for a in args]
+    assert_one_line_error(lidar_slam(*args), said)
+    assert not (tmp_path / "out").exists()
+
+
+def test_simulate_gnss_without_pyproj_says_so_before_writing(tmp_path):
+    """It stopped after the scans and the IMU were written, leaving a sequence without
+    gnss.csv that `run` then ran without GNSS."""
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys; sys.modules['pyproj'] = None; "
+         "from lidar_slam.cli import app; app()", "simulate", "--motion", "handheld", "--world",
+         "outdoor", "--duration-s", "2", "--imu", "--gnss", "--sensor", "vlp16", "--out",
+         str(tmp_path / "sim")], capture_output=True, text=True, timeout=300)
+    assert_one_line_error(proc, "GNSS needs pyproj: pip install 'lidar-slam[geo]'")
+    assert not (tmp_path / "sim").exists()

@@ -255,6 +255,19 @@ def test_evaluate_plots_drift_against_segment_length(tmp_path):
     assert not list((tmp_path / "out").glob(".*.tmp"))  # written via a temporary file
 
 
+def test_an_evaluation_into_the_same_folder_says_so_and_leaves_no_stale_plot(tmp_path, caplog):
+    """A short estimate evaluated where a long one was left the long one's drift plot beside
+    its own metrics.json, in silence (a new user's pass)."""
+    long_gt, short_gt = straight_drive(400), straight_drive(40)
+    for name, poses in (("long", long_gt), ("short", short_gt)):
+        write_kitti_poses(tmp_path / f"{name}.txt", poses)
+    run_eval(tmp_path / "long.txt", tmp_path / "long.txt", out_dir=tmp_path / "out")
+    assert (tmp_path / "out" / "drift_vs_length.png").is_file()
+    run_eval(tmp_path / "short.txt", tmp_path / "short.txt", out_dir=tmp_path / "out")
+    assert not (tmp_path / "out" / "drift_vs_length.png").exists()
+    assert f"{tmp_path / 'out'}: replacing the evaluation there" in caplog.text
+
+
 def test_eval_takes_the_runs_own_start_and_refuses_another(tmp_path):
     """A run's pose file with its summary.json beside it: eval pairs from the run's --start
     when none is given, and refuses a different one (every pose against another scan's truth)."""

@@ -329,6 +329,10 @@ def test_bad_input_is_one_line(merged, tmp_path):
     assert_one_line_error(proc, str(empty), "no keyframes")
     proc = lidar_slam("merge", runs[0], runs[1], "--reference", "2", "--out", tmp_path / "m")
     assert_one_line_error(proc, "--reference 2")
+    # a merged map given as a run: it said "keyframes without stamps (an older run)"
+    proc = lidar_slam("merge", root / "map", runs[1], "--out", tmp_path / "m")
+    assert_one_line_error(proc, f"{root / 'map'}: a merged map, not a run",
+                          f"--extend {root / 'map'}")
     assert not (tmp_path / "m").exists()
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from enum import Enum
 from pathlib import Path
 from typing import Optional
@@ -11,6 +12,8 @@ import typer
 from lidar_slam.cli.common import app, fail, reports_errors
 from lidar_slam.run.outdir import prepare_out_dir
 
+MIN_CELL_M = 1e-3  # --voxel / --resolution: a millimetre, below any lidar's noise
+
 
 def _parse_band(text: str) -> tuple[float, float]:
     try:
@@ -18,8 +21,8 @@ def _parse_band(text: str) -> tuple[float, float]:
     except ValueError:
         raise fail(f"--band: expected LOW,HIGH in metres above the ground, got {text!r}"
                     ) from None
-    if not 0 <= lo < hi:
-        raise fail(f"--band: need 0 <= LOW < HIGH, got {text!r}")
+    if not 0 <= lo < hi < math.inf:
+        raise fail(f"--band: need 0 <= LOW < HIGH, both finite, got {text!r}")
     return lo, hi
 
 
@@ -63,6 +66,10 @@ def export(
     for name, value in (("--voxel", voxel), ("--resolution", resolution)):
         if value is not None and not value > 0:
             raise fail(f"{name} must be positive, got {value:g}")
+        if value is not None and not MIN_CELL_M <= value < math.inf:
+            # 1e-20 overflowed the voxel indices (2214 of 99,659 points kept), inf kept one
+            raise fail(f"{name} must be a finite size of at least {MIN_CELL_M:g} m, got "
+                       f"{value:g}")
     if occupancy:
         from lidar_slam.map.occupancy import OccupancyParams, build_grid, write_map_server
 

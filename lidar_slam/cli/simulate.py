@@ -80,7 +80,7 @@ def simulate(
         "imu.time_offset_s, added to every IMU stamp, is S; written with T_lidar_imu into "
         "OUT/lidar_slam.yaml."),
     gnss: bool = typer.Option(False, "--gnss", help="Also write gnss.csv (noise, dropouts, "
-                              "multipath jumps) and its truth; needs pyproj (lidar-slam[geo])."),
+                              "multipath jumps) and its truth; needs pyproj (lidar-slam\\[geo])."),
     gnss_rate: float = typer.Option(1.0, "--gnss-rate", min=0.1, max=20.0,
                                     help="GNSS rate (Hz) with --gnss."),
     imu_extrinsic: Optional[str] = typer.Option(
@@ -121,12 +121,16 @@ def simulate(
     handheld walk, a legged robot's trot or a drone's flight (--motion) through a built world.
 
     POSES: KITTI pose files (left-camera frame, as poses/XX.txt). With several, each becomes
-    OUT/<name>, simulated in parallel when Ray is installed (`lidar-slam[cluster]`).
+    OUT/<name>, simulated in parallel when Ray is installed (`lidar-slam\\[cluster]`).
     """
     from lidar_slam.sim.jobs import SimulateJob, simulate_many, simulate_one
 
     if imu_time_offset and not imu:
         raise fail("--imu-time-offset goes with --imu")
+    if gnss:  # before anything is simulated: it stopped after the scans and the IMU were out
+        from lidar_slam.geo import require_pyproj
+
+        require_pyproj()
     timing = {"stamp": stamp.value, "imu_time_offset_s": imu_time_offset}
     rates = (imu_rate if imu else None, gnss_rate if gnss else None,
              _numbers(imu_extrinsic, 6, "--imu-extrinsic"), _numbers(gnss_datum, 3, "--gnss-datum"),

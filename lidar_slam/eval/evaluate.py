@@ -307,6 +307,8 @@ def run_eval(est_path: str | Path, gt_path: str | Path, fmt: str = "auto",
     if out_dir is not None:
         d = Path(out_dir)
         d.mkdir(parents=True, exist_ok=True)
+        if (d / "metrics.json").is_file():  # replaced silently before, beside a stale plot
+            log.warning("%s: replacing the evaluation there (metrics.json and its plots)", d)
         write_text_atomic(d / "metrics.json", json.dumps(out, indent=2) + "\n")
         write_plots(d, est, gt, pairs, correct, gt_label)
     return out
@@ -402,6 +404,8 @@ def write_plots(out_dir: Path, est: np.ndarray, gt: np.ndarray, pairs: np.ndarra
     drift = metrics.kitti_drift(est, gt)
     if drift.by_length:
         plot_drift_vs_length(out_dir / "drift_vs_length.png", drift.by_length)
+    else:  # an earlier evaluation's would stand beside this one's metrics
+        (out_dir / "drift_vs_length.png").unlink(missing_ok=True)
 
 
 # ----------------------------------------------------------------------------------- plots

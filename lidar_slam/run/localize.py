@@ -24,8 +24,10 @@ def parse_initial_pose(text: str | None):
 
     try:
         x, y, z, yaw = (float(v) for v in text.split(","))
+        if not all(abs(v) < float("inf") for v in (x, y, z, yaw)):  # nan ran unsaid
+            raise ValueError
     except ValueError:
-        raise RunFailed(f"--initial-pose: expected x,y,z,yaw (metres, metres, metres, "
+        raise RunFailed(f"--initial-pose: expected x,y,z,yaw, finite (metres, metres, metres, "
                         f"degrees), got {text!r}") from None
     return initial_pose_matrix(x, y, z, yaw)
 
