@@ -307,3 +307,14 @@ def test_simulate_gnss_without_pyproj_says_so_before_writing(tmp_path):
          str(tmp_path / "sim")], capture_output=True, text=True, timeout=300)
     assert_one_line_error(proc, "GNSS needs pyproj: pip install 'lidar-slam[geo]'")
     assert not (tmp_path / "sim").exists()
+
+
+def test_simulate_refusing_its_arguments_leaves_no_out_folder(tmp_path):
+    poses = tmp_path / "poses.txt"
+    poses.write_text("".join(f"1 0 0 {k} 0 1 0 0 0 0 1 0\n" for k in range(5)))
+    calib = tmp_path / "calib.txt"
+    calib.write_text("Tr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    proc = lidar_slam("simulate", poses, "--calib", calib, "--start", "99", "--out",
+                      tmp_path / "sim")
+    assert_one_line_error(proc, "--start 99 is past the last pose")
+    assert not (tmp_path / "sim").exists()

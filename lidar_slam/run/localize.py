@@ -9,7 +9,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lidar_slam.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, LidarSlamError, RunFailed
-from lidar_slam.run.outdir import prepare_out_dir, refuse_input_as_out, scan_range
+from lidar_slam.run.outdir import (
+    prepare_out_dir,
+    refuse_input_as_out,
+    say_short_range,
+    scan_range,
+)
 from lidar_slam.run.progress import progress as make_progress
 from lidar_slam.run.signals import StopSignals
 
@@ -74,6 +79,7 @@ def localize_sequence(data: Path, map_dir: Path, out: Path, *, config: Path | No
     source = open_source(data, topic=topic,
                          kitti_vertical_correction=saved.cfg.data.kitti_vertical_correction)
     total = scan_range(data, start, n_scans, len(source))
+    say_short_range(data, start, n_scans, len(source))
     prepare_out_dir(out, LOCALIZE_OUTPUTS, overwrite)
     loc = Localizer(saved, T_init)
     load_s = time.perf_counter() - t0

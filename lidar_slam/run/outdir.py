@@ -128,6 +128,13 @@ def discard_run(out: Path, created: bool) -> None:
         out.rmdir()
 
 
+def say_short_range(path: Path, start: int, n_scans: int | None, available: int) -> None:
+    """One warning when --n-scans asks for more scans than there are from --start on."""
+    if n_scans is not None and n_scans > available - start:
+        log.warning("%s: --n-scans %d from --start %d: only %d scans there; reading those",
+                    path, n_scans, start, available - start)
+
+
 def scan_range(path: Path, start: int, n_scans: int | None, available: int,
                unit: str = "scan", count: str | None = None) -> int:
     """How many of the `available` scans (or poses) from --start on a command reads (all, or
@@ -135,7 +142,4 @@ def scan_range(path: Path, start: int, n_scans: int | None, available: int,
     if start >= available:
         raise RunFailed(f"{path}: --start {start} is past the last {unit} "
                         f"({f'{available} {unit}s' if count is None else count})")
-    if n_scans is not None and n_scans > available - start:
-        log.warning("%s: --n-scans %d from --start %d: only %d %ss there; reading those", path,
-                    n_scans, start, available - start, unit)
     return available - start if n_scans is None else min(n_scans, available - start)

@@ -26,6 +26,7 @@ from lidar_slam.run.outdir import (
     prepare_out_dir,
     refuse_input_as_out,
     refuse_out_among_scans,
+    say_short_range,
     scan_range,
 )
 from lidar_slam.run.progress import progress as make_progress
@@ -287,6 +288,7 @@ def run_sequence(data: Path, out: Path, *, config: Path | None = None, start: in
     refuse_out_among_scans(out, scan_files)
     check_rrd(rrd, out, [data, *(scan_files or [])], overwrite, resume)
     total = scan_range(data, start, n_scans, len(source))
+    say_short_range(data, start, n_scans, len(source))
     own_mounting, mounting_from = _mounting_from_input(cfg, source, imu_topic)
     resolved, inertial = _load_inertial(source, own_mounting, imu_topic, gnss_topic, start,
                                         total)

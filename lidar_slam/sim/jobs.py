@@ -59,7 +59,6 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
     calib = Path(job.calib) if job.calib else poses.parent.parent / "calib" / poses.name
     if job.calib is None and not calib.is_file():
         raise RunFailed(f"{poses}: no --calib given and no {calib} beside it; pass --calib")
-    prepare_out_dir(out, SIMULATE_OUTPUTS, job.overwrite)
     Tr = read_kitti_calib_tr(calib)
     poses_lidar = camera_to_lidar_poses(read_kitti_poses(poses), Tr)
     times = Path(job.times) if job.times else poses.parent.parent / "times" / poses.name
@@ -73,6 +72,8 @@ def simulate_one(job: SimulateJob, progress: bool = True) -> str:
     total = scan_range(poses, job.start, job.n_scans, len(poses_lidar), "pose",
                        count=str(len(poses_lidar)))
     imu, gnss = _inertial(job)
+    # after every argument is checked: a refused --start left an empty --out behind
+    prepare_out_dir(out, SIMULATE_OUTPUTS, job.overwrite)
     bar = make_progress(f"simulate {out.name}", total, unit="scans", shown=progress)
     try:
         summary = simulate_sequence(poses_lidar, stamps, out, sensor=job.sensor, seed=job.seed,
