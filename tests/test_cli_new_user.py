@@ -318,3 +318,20 @@ def test_simulate_refusing_its_arguments_leaves_no_out_folder(tmp_path):
                       tmp_path / "sim")
     assert_one_line_error(proc, "--start 99 is past the last pose")
     assert not (tmp_path / "sim").exists()
+
+
+@pytest.mark.parametrize("args,said", [
+    (("export", "RUN", "--out", "OUT/m.ply", "--resolution", "0.2"),
+     "--resolution: not used without --occupancy"),
+    (("export", "RUN", "--occupancy", "--out", "OUT", "--voxel", "0.2"),
+     "--voxel: not used with --occupancy"),
+    (("optimize", "RUN/g.g2o", "--out", "OUT/o.g2o", "--huber-k", "2"),
+     "--huber-k: not used without --robust huber"),
+])
+def test_an_option_that_does_nothing_here_is_said(tmp_path, args, said):
+    args = [str(a).replace("RUN", str(tmp_path / "run")).replace("OUT", str(tmp_path))
+            for a in args]
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "g.g2o").write_text("not a graph\n")
+    proc = lidar_slam(*args)  # then refused: no run there, no graph in the file
+    assert proc.returncode == 2 and f"WARNING lidar_slam: {said}" in proc.stderr, proc.stderr

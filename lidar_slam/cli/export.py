@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from lidar_slam.cli.common import app, fail, reports_errors
+from lidar_slam.cli.common import app, fail, log, reports_errors
 from lidar_slam.run.outdir import prepare_out_dir
 
 MIN_CELL_M = 1e-3  # --voxel / --resolution: a millimetre, below any lidar's noise
@@ -63,6 +63,12 @@ def export(
     """
     from lidar_slam.map.saved import open_map
 
+    unused = ([n for n, v in (("--voxel", voxel), ("--format", fmt)) if v is not None]
+              if occupancy else [n for n, v, d in (("--resolution", resolution, 0.1),
+                                                    ("--band", band, "0.3,2.0")) if v != d])
+    if unused:  # taken quietly before, as if they had done something
+        log.warning("%s: not used %s --occupancy", ", ".join(unused),
+                    "with" if occupancy else "without")
     for name, value in (("--voxel", voxel), ("--resolution", resolution)):
         if value is not None and not value > 0:
             raise fail(f"{name} must be positive, got {value:g}")

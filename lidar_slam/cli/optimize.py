@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from lidar_slam.cli.common import app, fail, reports_errors
+from lidar_slam.cli.common import app, fail, log, reports_errors
 
 
 class Robust(str, Enum):
@@ -71,6 +71,8 @@ def optimize(
         raise fail(f"{out}: --out is a folder, not a file")
     if out.exists() and not overwrite:
         raise fail(f"{out}: already exists; pass --overwrite")
+    if robust != Robust.huber and huber_k != 1.345:
+        log.warning("--huber-k: not used without --robust huber")
     rep = optimize_g2o(graph, out, robust=robust.value, huber_k=huber_k,
                        max_iterations=max_iterations, init=init.value, certify=certify.value,
                        weights=weights.value)
