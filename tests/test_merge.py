@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -333,6 +334,10 @@ def test_bad_input_is_one_line(merged, tmp_path):
     proc = lidar_slam("merge", root / "map", runs[1], "--out", tmp_path / "m")
     assert_one_line_error(proc, f"{root / 'map'}: a merged map, not a run",
                           f"--extend {root / 'map'}")
+    # a copy of a run was merged as a second session (20 "loops" with itself)
+    shutil.copytree(runs[1], tmp_path / "copy")
+    proc = lidar_slam("merge", runs[0], runs[1], tmp_path / "copy", "--out", tmp_path / "m")
+    assert_one_line_error(proc, f"{tmp_path / 'copy'}: the same run as {runs[1]}")
     assert not (tmp_path / "m").exists()
 
 

@@ -82,11 +82,18 @@ def merge_runs(runs: list[Path], out: Path, reference: int = 0, min_loops: int =
     if not 0 <= reference < len(runs):
         raise RunFailed(f"--reference {reference}: give 0..{len(runs) - 1} (one of the "
                         f"{len(runs)} runs)")
-    seen = set()
+    seen: set[Path] = set()
+    copies: dict[bytes, Path] = {}
     for run in runs:
         if run.resolve() in seen:
             raise InputError(run, "given twice")
         seen.add(run.resolve())
+        digest = _run_digest(run)  # a copy merged as a second session doubled the map
+        if digest is not None and digest in copies:
+            raise InputError(run, f"the same run as {copies[digest]} (the same poses and "
+                                  f"keyframes): give each session once")
+        if digest is not None:
+            copies[digest] = run
     if out.resolve() in seen:
         raise RunFailed(f"{out}: --out is one of the runs to merge")
     sessions: list[Session] = []
@@ -325,6 +332,20 @@ def _write_session(folder: Path, s: Session, loops: list[SessionLoop], anc: Anch
                                            @ np.linalg.inv(s.map.T_map_kf[0]), 9).tolist()
     write_text_atomic(folder / "summary.json", json.dumps(doc, indent=1) + "\n")
 
+
+
+def _run_digest(run: Path) -> bytes | None:
+    """A hash of a run's poses and keyframe table (None when either is missing: open_session
+    says what is wrong with it)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for path in (run / "poses_kitti.txt", run / "keyframes" / "table.bin"):
+        try:
+            h.update(path.read_bytes())
+        except OSError:
+            return None
+    return h.digest()
 
 
 def sessions_of(map_dir: Path) -> tuple[list[Path], int]:
