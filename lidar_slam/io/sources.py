@@ -98,6 +98,7 @@ def _load_stamps(path: Path, n: int, files: list[Path] | None = None) -> np.ndar
 
 SCAN_RATES_HZ = (0.5, 200.0)  # a scanning lidar's sweep rate, in any unit of its stamps
 SLOW_SCANS_S = 10.0  # scans further apart than this (median) are said to be
+OTHER_UNIT_S = 3600.0  # read as s, scans this far apart (median) are stamps in another unit
 
 
 def _stamps_in_s(path: Path, stamps: np.ndarray) -> np.ndarray:
@@ -111,7 +112,7 @@ def _stamps_in_s(path: Path, stamps: np.ndarray) -> np.ndarray:
     if not len(steps):
         return stamps
     spacing = float(np.median(steps))
-    if spacing >= 3600.0:
+    if spacing >= OTHER_UNIT_S:
         fits = [(scale, unit) for scale, unit in STAMP_UNITS[1:]
                 if SCAN_RATES_HZ[0] <= 1.0 / (spacing * scale) <= SCAN_RATES_HZ[1]]
         if fits:

@@ -48,7 +48,7 @@ from lidar_slam.merge.loops import (
     guided_loops,
 )
 from lidar_slam.merge.moving import moving_points
-from lidar_slam.merge.session import Session, open_session
+from lidar_slam.merge.session import Session, map_summary, open_session
 from lidar_slam.merge.solve import Anchors, JointSolution, anchors, solve
 
 log = logging.getLogger(__name__)
@@ -352,11 +352,8 @@ def sessions_of(map_dir: Path) -> tuple[list[Path], int]:
     """The run folders a saved map is made of and its reference: a merged map's (its
     summary.json `merged_from`, each still there), else the run itself (reference 0). What
     `run --extend MAP` merges the new run with."""
-    try:
-        summary = json.loads((map_dir / "summary.json").read_text())
-    except (OSError, ValueError):
-        summary = {}
-    runs = summary.get("merged_from") if isinstance(summary, dict) else None
+    summary = map_summary(map_dir)
+    runs = summary.get("merged_from")
     if not runs:
         if not (map_dir / "keyframes" / "manifest.json").is_file():
             raise InputError(map_dir, "not a saved map (no keyframes/manifest.json)")

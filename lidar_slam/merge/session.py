@@ -68,7 +68,7 @@ def open_session(index: int, run_dir: str | Path) -> Session:
     """The run folder as a session; InputError (one line naming the path) when it is not a
     finished run with keyframes and poses."""
     root = Path(run_dir)
-    if _merged_from(root):  # its keyframes carry no stamps: "an older run" misled a user
+    if merged_from(root):  # its keyframes carry no stamps: "an older run" misled a user
         raise InputError(root, "a merged map, not a run: merge its runs (summary.json "
                                "merged_from) with the new ones, or add a run to it with "
                                f"`lidar-slam run DATA --extend {root}`")
@@ -96,15 +96,21 @@ def open_session(index: int, run_dir: str | Path) -> Session:
     return Session(index, root, saved, odometry, loops, stamps, T_run_frame, kf_stamps)
 
 
-def _merged_from(root: Path) -> list | None:
-    """A merged map's runs (its summary.json merged_from), else None."""
+def map_summary(root: Path) -> dict:
+    """A saved map's summary.json ({} when missing or unreadable): a merged map's names its
+    runs (merged_from) and its reference."""
     import json
 
     try:
         summary = json.loads((root / "summary.json").read_text())
     except (OSError, ValueError):
-        return None
-    return summary.get("merged_from") if isinstance(summary, dict) else None
+        return {}
+    return summary if isinstance(summary, dict) else {}
+
+
+def merged_from(root: Path) -> list | None:
+    """A merged map's runs, else None (a run, or no summary)."""
+    return map_summary(root).get("merged_from")
 
 
 def _graph_edges(path: Path, saved: SavedMap) -> tuple[list[G2oEdge], list[G2oEdge]]:

@@ -91,7 +91,7 @@ def refuse_out_among_scans(out: Path, files: list[Path] | None) -> None:
     time. files: the input's scan files (None for a recording)."""
     if files is None or len(files) < 2:  # a recording, or one scan file: nothing read back
         return
-    if out.resolve() in {Path(f).resolve().parent for f in files}:
+    if out.resolve() in {p.resolve() for p in {Path(f).parent for f in files}}:
         raise RunFailed(f"{out}: --out is the folder the input's scans are read from; write the "
                         f"outputs to another folder")
 
